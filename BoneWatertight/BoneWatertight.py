@@ -1,0 +1,566 @@
+import logging
+import os
+import sys
+import time
+from typing import Annotated, Optional
+
+import ctk
+import qt
+import vtk
+
+import slicer
+from slicer.i18n import tr as _
+from slicer.i18n import translate
+from slicer.ScriptedLoadableModule import (
+    ScriptedLoadableModule,
+    ScriptedLoadableModuleLogic,
+    ScriptedLoadableModuleTest,
+    ScriptedLoadableModuleWidget,
+)
+from slicer.parameterNodeWrapper import Choice, WithinRange, parameterNodeWrapper
+from slicer.util import VTKObservationMixin
+
+from slicer import vtkMRMLModelNode, vtkMRMLScalarVolumeNode, vtkMRMLSegmentationNode
+
+
+def _ensureLibraryOnPath():
+    """The library lives beside the module folder in a source checkout (SPEC §2) and inside it
+    when installed by the extension build; make both layouts importable."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    for candidate in (here, os.path.dirname(here)):
+        if os.path.isdir(os.path.join(candidate, "BoneWatertightLib")) and candidate not in sys.path:
+            sys.path.append(candidate)
+
+
+_ensureLibraryOnPath()
+
+PRESET_NAMES = ["custom", "femur", "hip", "vertebra"]
+
+#
+# BoneWatertight
+#
+
+
+class BoneWatertight(ScriptedLoadableModule):
+    def __init__(self, parent):
+        ScriptedLoadableModule.__init__(self, parent)
+        self.parent.title = _("Bone Watertight")
+        self.parent.categories = [translate("qSlicerAbstractCoreModule", "Segmentation")]
+        self.parent.dependencies = ["Segmentations"]
+        self.parent.contributors = ["BoneWatertight developers"]
+        self.parent.helpText = _("""
+Reconstructs a closed (watertight), 2-manifold and accurate surface model of one bone from a CT
+volume and a rough segment of that bone, following the method of
+"Watertight 2-manifold 3D bone surface model reconstruction from CT images based on visual
+hyper-spherical mapping": two-step thresholding, visible-point extraction by hyper-spherical
+mapping, screened Poisson reconstruction and constrained Laplacian deformation. Every output is
+checked (closed, manifold, no self-intersections, outward orientation) before it is stored.
+See the project README for parameters and batch use.
+""")
+        self.parent.acknowledgementText = _("""
+The reconstruction method is described in "Watertight 2-manifold 3D bone surface model
+reconstruction from CT images based on visual hyper-spherical mapping" (the paper this module
+implements). The module follows the 3D Slicer scripted-module template; it uses VTK, SimpleITK,
+numpy, scipy and Open3D.
+""")
+
+
+#
+# BoneWatertightParameterNode
+#
+
+
+@parameterNodeWrapper
+class BoneWatertightParameterNode:
+    """Every input, option and algorithm parameter (names of the algorithm parameters are those of
+    BoneWatertightLib.params.Parameters; 0 means "auto" for spacing, sigma and edge_length).
+
+    inputVolume - CT volume (HU). inputSegmentation/segmentId - the rough bone segment (segment
+    selector synced by hand: the wrapper has no connector for it). outputModel - result model.
+    """
+
+    inputVolume: vtkMRMLScalarVolumeNode
+    inputSegmentation: vtkMRMLSegmentationNode
+    segmentId: str = ""
+    outputModel: vtkMRMLModelNode
+    preset: Annotated[str, Choice(PRESET_NAMES)] = "custom"
+    addAsSegment: bool = False
+    showIntermediates: bool = False
+    colorByDistance: bool = True
+    # resampling
+    spacing: Annotated[float, WithinRange(0.0, 2.0)] = 0.0
+    margin: Annotated[float, WithinRange(0.0, 30.0)] = 5.0
+    segment_dilation: Annotated[float, WithinRange(0.0, 20.0)] = 3.0
+    max_memory_gb: Annotated[float, WithinRange(0.5, 64.0)] = 4.0
+    # hybrid filter
+    sigma: Annotated[float, WithinRange(0.0, 3.0)] = 0.0
+    rho: Annotated[float, WithinRange(50.0, 100.0)] = 80.0
+    # thresholds
+    theta_max: Annotated[float, WithinRange(500.0, 4000.0)] = 2500.0
+    h0: Annotated[float, WithinRange(-200.0, 2000.0)] = 300.0
+    ht: Annotated[float, WithinRange(-300.0, 1500.0)] = 150.0
+    max_erosions: Annotated[int, WithinRange(1, 10)] = 3
+    opening: Annotated[int, WithinRange(0, 10)] = 1
+    closing: Annotated[int, WithinRange(0, 10)] = 2
+    # visible points, Poisson, deformation
+    views: Annotated[int, WithinRange(1, 26)] = 14
+    view_distance: Annotated[float, WithinRange(1.0, 50.0)] = 20.0
+    log_radius: Annotated[float, WithinRange(1.0, 6.0)] = 3.6
+    poisson_depth: Annotated[int, WithinRange(4, 10)] = 7
+    edge_length: Annotated[float, WithinRange(0.0, 5.0)] = 0.0
+    iterations: Annotated[int, WithinRange(0, 50)] = 8
+    alpha: Annotated[float, WithinRange(0.0, 10.0)] = 1.0
+    beta: Annotated[float, WithinRange(0.0, 10.0)] = 1.0
+    search_radius: Annotated[float, WithinRange(0.5, 4.0)] = 1.5
+    search_offset: Annotated[float, WithinRange(0.1, 2.0)] = 0.75
+    refine_edges: bool = True
+
+
+# Parameter-node fields that are algorithm parameters, and those where 0 means "auto" (None).
+ALGORITHM_FIELDS = (
+    "spacing", "margin", "segment_dilation", "max_memory_gb", "sigma", "rho", "theta_max", "h0", "ht",
+    "max_erosions", "opening", "closing", "views", "view_distance", "log_radius", "poisson_depth",
+    "edge_length", "iterations", "alpha", "beta", "search_radius", "search_offset", "refine_edges",
+)
+AUTO_ZERO_FIELDS = ("spacing", "edge_length")
+
+
+def parametersFromNode(parameterNode) -> dict:
+    """Keyword arguments for BoneWatertightLib.params.Parameters from the parameter node."""
+    values = {}
+    for name in ALGORITHM_FIELDS:
+        value = getattr(parameterNode, name)
+        values[name] = None if (name in AUTO_ZERO_FIELDS and not value) else value
+    return values
+
+
+#
+# BoneWatertightWidget
+#
+
+
+class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
+    PREVIEW_HIDE_DELAY_MS = 1500
+
+    def __init__(self, parent=None) -> None:
+        ScriptedLoadableModuleWidget.__init__(self, parent)
+        VTKObservationMixin.__init__(self)
+        self.logic = None
+        self._parameterNode = None
+        self._parameterNodeGuiTag = None
+        self._running = False
+        self._cancelRequested = False
+        self._previewNode = None
+        self._previewTimer = None
+        self._savedViewState = None
+        self._updatingSegmentSelector = False
+
+    def setup(self) -> None:
+        ScriptedLoadableModuleWidget.setup(self)
+        uiWidget = slicer.util.loadUI(self.resourcePath("UI/BoneWatertight.ui"))
+        self.layout.addWidget(uiWidget)
+        self.ui = slicer.util.childWidgetVariables(uiWidget)
+        uiWidget.setMRMLScene(slicer.mrmlScene)
+
+        self.logic = BoneWatertightLogic()
+
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+
+        # The segment selector has no parameter-node connector: sync it by hand.
+        self.ui.segmentSelector.connect("currentNodeChanged(vtkMRMLNode*)", self.onSegmentSelectorChanged)
+        self.ui.segmentSelector.connect("currentSegmentChanged(QString)", self.onSegmentSelectorChanged)
+        self.ui.presetComboBox.connect("currentIndexChanged(int)", self.onPresetChanged)
+        self.ui.autoThresholdButton.connect("clicked(bool)", self.onAutoThreshold)
+        self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
+
+        self._previewTimer = qt.QTimer()
+        self._previewTimer.setSingleShot(True)
+        self._previewTimer.setInterval(self.PREVIEW_HIDE_DELAY_MS)
+        self._previewTimer.connect("timeout()", self.removePreview)
+        for slider in (self.ui.thetaMaxSlider, self.ui.h0Slider, self.ui.htSlider):
+            slider.connect("valueIsChanging(double)", self.onThresholdDragged)
+            slider.connect("valueChanged(double)", self.onThresholdDragged)
+
+        self.initializeParameterNode()
+
+    def cleanup(self) -> None:
+        self.removePreview()
+        self.removeObservers()
+
+    def enter(self) -> None:
+        self.initializeParameterNode()
+
+    def exit(self) -> None:
+        self.removePreview()
+        if self._parameterNode:
+            self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+            self._parameterNodeGuiTag = None
+            self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._onParameterNodeModified)
+
+    def onSceneStartClose(self, caller, event) -> None:
+        self.removePreview()
+        self.setParameterNode(None)
+
+    def onSceneEndClose(self, caller, event) -> None:
+        if self.parent.isEntered:
+            self.initializeParameterNode()
+
+    def initializeParameterNode(self) -> None:
+        self.setParameterNode(self.logic.getParameterNode())
+        if not self._parameterNode.inputVolume:
+            firstVolumeNode = slicer.mrmlScene.GetFirstNodeByClass("vtkMRMLScalarVolumeNode")
+            if firstVolumeNode and not firstVolumeNode.IsA("vtkMRMLLabelMapVolumeNode"):
+                self._parameterNode.inputVolume = firstVolumeNode
+        if not self._parameterNode.inputSegmentation:
+            firstSegmentation = slicer.mrmlScene.GetFirstNodeByClass("vtkMRMLSegmentationNode")
+            if firstSegmentation:
+                self._parameterNode.inputSegmentation = firstSegmentation
+
+    def setParameterNode(self, inputParameterNode: Optional[BoneWatertightParameterNode]) -> None:
+        if self._parameterNode:
+            self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+            self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._onParameterNodeModified)
+        self._parameterNode = inputParameterNode
+        if self._parameterNode:
+            self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
+            self.addObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._onParameterNodeModified)
+            self._onParameterNodeModified()
+
+    def _onParameterNodeModified(self, caller=None, event=None) -> None:
+        self._syncSegmentSelectorFromParameterNode()
+        self._checkCanApply()
+
+    def _syncSegmentSelectorFromParameterNode(self) -> None:
+        if self._parameterNode is None or self._updatingSegmentSelector:
+            return
+        self._updatingSegmentSelector = True
+        try:
+            seg = self._parameterNode.inputSegmentation
+            if self.ui.segmentSelector.currentNode() != seg:
+                self.ui.segmentSelector.setCurrentNode(seg)
+            if seg and self._parameterNode.segmentId and \
+                    self.ui.segmentSelector.currentSegmentID() != self._parameterNode.segmentId:
+                self.ui.segmentSelector.setCurrentSegmentID(self._parameterNode.segmentId)
+        finally:
+            self._updatingSegmentSelector = False
+
+    def onSegmentSelectorChanged(self, *args) -> None:
+        if self._parameterNode is None or self._updatingSegmentSelector:
+            return
+        self._updatingSegmentSelector = True
+        try:
+            with slicer.util.NodeModify(self._parameterNode):
+                self._parameterNode.inputSegmentation = self.ui.segmentSelector.currentNode()
+                self._parameterNode.segmentId = self.ui.segmentSelector.currentSegmentID() or ""
+        finally:
+            self._updatingSegmentSelector = False
+        self._checkCanApply()
+
+    def _checkCanApply(self, caller=None, event=None) -> None:
+        if self._running:
+            return
+        p = self._parameterNode
+        ok = bool(p and p.inputVolume and p.inputSegmentation and p.segmentId)
+        self.ui.applyButton.enabled = ok
+        self.ui.autoThresholdButton.enabled = ok
+        self.ui.applyButton.toolTip = _("Run the reconstruction.") if ok else _(
+            "Select a CT volume, a segmentation and the bone segment first.")
+
+    # --- presets and thresholds
+
+    def onPresetChanged(self, index) -> None:
+        name = self.ui.presetComboBox.currentText
+        if not self._parameterNode or name not in PRESET_NAMES or name == "custom":
+            return
+        from BoneWatertightLib.params import preset
+
+        values = preset(name).to_dict()
+        with slicer.util.NodeModify(self._parameterNode):
+            for key in ALGORITHM_FIELDS:
+                if key in values:
+                    value = values[key]
+                    setattr(self._parameterNode, key, 0.0 if value is None else value)
+
+    def onAutoThreshold(self) -> None:
+        p = self._parameterNode
+        with slicer.util.tryWithErrorDisplay(_("Could not propose thresholds."), waitCursor=True):
+            from BoneWatertightLib import mrml
+
+            proposal = mrml.propose_thresholds(p.inputVolume, p.inputSegmentation, p.segmentId, p.theta_max)
+            with slicer.util.NodeModify(p):
+                p.theta_max = float(proposal["theta_max"])
+                p.h0 = float(proposal["h0"])
+                p.ht = float(proposal["ht"])
+            self._log(_("Auto thresholds: soft tissue {soft:.0f} HU, cortex {cortex:.0f} HU -> "
+                        "H0 {h0}, HT {ht}, θmax {tmax}").format(
+                soft=proposal["soft_tissue"], cortex=proposal["cortex"], h0=proposal["h0"],
+                ht=proposal["ht"], tmax=proposal["theta_max"]))
+            self.updatePreview()
+
+    def onThresholdDragged(self, value=None) -> None:
+        if self._running or not self.ui.previewCheckBox.checked:
+            return
+        self.updatePreview()
+        self._previewTimer.start()  # restarted on every change: removed once the user stops
+
+    def updatePreview(self) -> None:
+        p = self._parameterNode
+        if not p or not p.inputVolume:
+            return
+        from BoneWatertightLib import mrml
+
+        h0 = self.ui.h0Slider.value
+        ht = self.ui.htSlider.value
+        tmax = self.ui.thetaMaxSlider.value
+        try:
+            self._previewNode = mrml.threshold_preview_labelmap(
+                p.inputVolume, p.inputSegmentation, p.segmentId, h0, ht, tmax, self._previewNode)
+        except Exception as exc:  # a preview must never interrupt the user; say why it is missing
+            self.ui.statusLabel.text = _("Preview unavailable: {error}").format(error=exc)
+            return
+        if self._savedViewState is None:
+            # remembered so removing the preview gives the user's slice views back unchanged
+            self._savedViewState = (
+                [(n, n.GetLabelVolumeID(), n.GetLabelOpacity())
+                 for n in slicer.util.getNodesByClass("vtkMRMLSliceCompositeNode")],
+                [(n, n.GetUseLabelOutline()) for n in slicer.util.getNodesByClass("vtkMRMLSliceNode")])
+        for sliceCompositeNode, _id, _opacity in self._savedViewState[0]:
+            sliceCompositeNode.SetLabelVolumeID(self._previewNode.GetID())
+            sliceCompositeNode.SetLabelOpacity(0.8)
+        for sliceNode, _outline in self._savedViewState[1]:
+            sliceNode.SetUseLabelOutline(True)
+
+    def removePreview(self) -> None:
+        if self._previewTimer:
+            self._previewTimer.stop()
+        if self._savedViewState is not None:
+            for sliceCompositeNode, labelId, opacity in self._savedViewState[0]:
+                sliceCompositeNode.SetLabelVolumeID(labelId)
+                sliceCompositeNode.SetLabelOpacity(opacity)
+            for sliceNode, outline in self._savedViewState[1]:
+                sliceNode.SetUseLabelOutline(outline)
+            self._savedViewState = None
+        if self._previewNode is not None:
+            if self._previewNode.GetScene() is not None:
+                slicer.mrmlScene.RemoveNode(self._previewNode)
+            self._previewNode = None
+
+    # --- run
+
+    def _log(self, text) -> None:
+        logging.info(text)
+        self.ui.logTextEdit.appendPlainText(text)
+
+    def _ensureOpen3d(self) -> bool:
+        """Install open3d on first Apply (never at import), asking the user first."""
+        try:
+            import open3d  # noqa: F401
+
+            return True
+        except ImportError:
+            pass
+        requirements = self.resourcePath("requirements.txt")
+        packaging = getattr(slicer, "packaging", None)
+        if packaging is not None and hasattr(packaging, "pip_ensure"):
+            # skip_packages keeps pip away from Slicer's own builds of these libraries
+            packaging.pip_ensure(packaging.load_requirements(requirements), requester="BoneWatertight",
+                                 skip_packages=["SimpleITK", "vtk", "numpy"])
+        else:
+            if not slicer.util.confirmOkCancelDisplay(
+                    _("Bone Watertight needs the Python package open3d (about 400 MB download). Install it now?"),
+                    detailedText="open3d>=0.18"):
+                return False
+            slicer.util.pip_install(["open3d>=0.18", "--upgrade-strategy", "only-if-needed"])
+        try:
+            import open3d  # noqa: F401
+        except ImportError:
+            slicer.util.errorDisplay(_("open3d could not be installed; it is required for the Poisson step."))
+            return False
+        return True
+
+    def _progress(self, fraction, message) -> bool:
+        self.ui.progressBar.value = int(round(100 * fraction))
+        if message:
+            self.ui.statusLabel.text = message
+            logging.info(f"BoneWatertight {100 * fraction:5.1f}% {message}")
+        slicer.app.processEvents()  # keeps the panel painting and lets Cancel be clicked
+        return not self._cancelRequested
+
+    def _setRunning(self, running) -> None:
+        self._running = running
+        self.ui.applyButton.text = _("Cancel") if running else _("Apply")
+        self.ui.applyButton.toolTip = _("Stop the run; nothing will be changed.") if running else _(
+            "Run the reconstruction.")
+        self.ui.progressBar.visible = running
+        for section in (self.ui.inputsCollapsibleButton, self.ui.thresholdsCollapsibleButton,
+                        self.ui.resamplingCollapsibleButton, self.ui.advancedCollapsibleButton,
+                        self.ui.outputCollapsibleButton):
+            section.enabled = not running
+        if not running:
+            self._checkCanApply()
+
+    def onApplyButton(self) -> None:
+        if self._running:
+            self._cancelRequested = True
+            self.ui.statusLabel.text = _("Cancelling...")
+            return
+        self.removePreview()
+        if not self._ensureOpen3d():
+            return
+        p = self._parameterNode
+        self._cancelRequested = False
+        self._setRunning(True)
+        self.ui.resultLabel.text = ""
+        start = time.time()
+        try:
+            from BoneWatertightLib.errors import CancelledError
+
+            model, result = self.logic.process(
+                p.inputVolume, p.inputSegmentation, p.segmentId, p.outputModel,
+                progressCallback=self._progress, addAsSegment=p.addAsSegment,
+                showIntermediates=p.showIntermediates, colorByDistance=p.colorByDistance,
+                **parametersFromNode(p), returnResult=True)
+            p.outputModel = model
+            from BoneWatertightLib import mrml
+
+            summary = mrml.summarize(result)
+            self.ui.resultLabel.text = summary
+            self.ui.statusLabel.text = _("Done in {seconds:.1f} s.").format(seconds=time.time() - start)
+            self._log(summary)
+        except CancelledError:
+            self.ui.statusLabel.text = _("Cancelled; nothing was changed.")
+            self._log("Cancelled by the user.")
+        except Exception as exc:
+            self.ui.statusLabel.text = str(exc)
+            self._log(f"Failed: {exc}")
+            logging.exception("BoneWatertight failed")
+            slicer.util.errorDisplay(_("Bone Watertight failed: {error}").format(error=exc))
+        finally:
+            self._setRunning(False)
+
+
+#
+# BoneWatertightLogic
+#
+
+
+class BoneWatertightLogic(ScriptedLoadableModuleLogic):
+    """Thin Slicer logic: all computation is in BoneWatertightLib (pipeline + the mrml adapter).
+
+    Works without the widget, e.g. from the Python console or a batch script:
+    ``BoneWatertightLogic().process(ctNode, segNode, segmentId, h0=300, ht=150)``.
+    """
+
+    def __init__(self) -> None:
+        ScriptedLoadableModuleLogic.__init__(self)
+
+    def getParameterNode(self):
+        return BoneWatertightParameterNode(super().getParameterNode())
+
+    def process(self, volumeNode, segmentationNode, segmentId, outputModelNode=None, progressCallback=None,
+                addAsSegment=False, showIntermediates=False, colorByDistance=True, preset=None,
+                returnResult=False, **parameters):
+        """Reconstruct the watertight bone surface into a model node.
+
+        :param volumeNode: CT volume (vtkMRMLScalarVolumeNode, HU).
+        :param segmentationNode: segmentation holding the rough bone segment.
+        :param segmentId: ID of the bone segment.
+        :param outputModelNode: model to replace on success; a new one is created if None.
+        :param progressCallback: callback(fraction, message); returning False cancels.
+        :param preset: "femur", "hip" or "vertebra" (parameters given explicitly override it).
+        :param parameters: any field of BoneWatertightLib.params.Parameters (h0, ht, theta_max, ...).
+        :return: the model node (and the ReconstructionResult if returnResult).
+        :raises BoneWatertightLib.errors.InputError: bad inputs; the scene is unchanged.
+        """
+        from BoneWatertightLib import mrml
+        from BoneWatertightLib.params import Parameters
+        from BoneWatertightLib.params import preset as makePreset
+
+        params = makePreset(preset, **parameters) if preset and preset != "custom" else Parameters().replace(
+            **parameters)
+        startTime = time.time()
+        logging.info("BoneWatertight: processing started")
+        model, result = mrml.run_on_nodes(
+            volumeNode, segmentationNode, segmentId, outputModelNode=outputModelNode, params=params,
+            progress=progressCallback, addAsSegment=addAsSegment, showIntermediates=showIntermediates,
+            colorByDistance=colorByDistance)
+        logging.info(f"BoneWatertight: processing completed in {time.time() - startTime:.2f} s: "
+                     f"{mrml.summarize(result)}")
+        return (model, result) if returnResult else model
+
+
+#
+# BoneWatertightTest
+#
+
+
+class BoneWatertightTest(ScriptedLoadableModuleTest):
+    """Synthetic CT (a capsule of ~1000 HU in ~40 HU, oblique geometry) + rough segment; no downloads."""
+
+    def setUp(self):
+        slicer.mrmlScene.Clear()
+
+    def runTest(self):
+        self.setUp()
+        self.test_BoneWatertight_capsule()
+        self.setUp()
+        self.test_BoneWatertight_bad_input_leaves_scene()
+
+    def _makeInputs(self):
+        import numpy as np
+
+        dims = (48, 40, 40)  # i, j, k
+        spacing = np.array([0.8, 0.8, 1.0])
+        angle = np.radians(20.0)
+        rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+        ijkToRas = np.eye(4)
+        ijkToRas[:3, :3] = rot @ np.diag([-1.0, -1.0, 1.0]) @ np.diag(spacing)
+        centre = np.array([10.0, -20.0, 50.0])
+        mid = np.array([(d - 1) / 2 for d in dims] + [1.0])
+        ijkToRas[:3, 3] = centre - (ijkToRas @ mid)[:3]
+        k, j, i = np.meshgrid(*(np.arange(d) for d in dims[::-1]), indexing="ij")
+        ras = np.stack([i, j, k, np.ones_like(i)], -1) @ ijkToRas.T
+        axis = rot @ np.array([1.0, 0.0, 0.0])
+        rel = ras[..., :3] - centre
+        t = np.clip(rel @ axis, -8.0, 8.0)
+        dist = np.linalg.norm(rel - t[..., None] * axis, axis=-1)  # distance to the capsule's axis segment
+        self.radius, self.centre, self.axis = 7.0, centre, axis
+        hu = np.where(dist <= self.radius, 1000, 40).astype(np.int16)
+        volume = slicer.util.addVolumeFromArray(hu, name="Capsule CT")
+        volume.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(ijkToRas))
+        label = slicer.util.addVolumeFromArray((dist <= self.radius - 1.5).astype(np.uint8), name="rough",
+                                               nodeClassName="vtkMRMLLabelMapVolumeNode")
+        label.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(ijkToRas))
+        segmentation = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLSegmentationNode", "Bones")
+        slicer.modules.segmentations.logic().ImportLabelmapToSegmentationNode(label, segmentation)
+        slicer.mrmlScene.RemoveNode(label)
+        return volume, segmentation, segmentation.GetSegmentation().GetNthSegmentID(0)
+
+    def test_BoneWatertight_capsule(self):
+        import numpy as np
+
+        self.delayDisplay("Building a synthetic capsule CT")
+        volume, segmentation, segmentId = self._makeInputs()
+        logic = BoneWatertightLogic()
+        model = logic.process(volume, segmentation, segmentId, spacing=0.6, h0=500.0, ht=300.0)
+        self.assertIsNotNone(model)
+        points = slicer.util.arrayFromModelPoints(model)
+        self.assertGreater(len(points), 100)
+        rel = points - self.centre
+        t = np.clip(rel @ self.axis, -8.0, 8.0)
+        dist = np.linalg.norm(rel - t[:, None] * self.axis, axis=-1) - self.radius
+        self.delayDisplay(f"{len(points)} vertices, max |error| {np.abs(dist).max():.2f} mm")
+        self.assertLess(np.abs(dist).max(), 1.0)
+        self.assertIsNotNone(model.GetDisplayNode())
+        self.delayDisplay("Test passed")
+
+    def test_BoneWatertight_bad_input_leaves_scene(self):
+        from BoneWatertightLib.errors import InputError
+
+        volume, segmentation, segmentId = self._makeInputs()
+        before = slicer.mrmlScene.GetNumberOfNodes()
+        with self.assertRaises(InputError):
+            BoneWatertightLogic().process(volume, segmentation, segmentId, h0=100.0, ht=300.0)
+        self.assertEqual(slicer.mrmlScene.GetNumberOfNodes(), before)
+        self.delayDisplay("Test passed")

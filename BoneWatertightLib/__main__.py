@@ -1,0 +1,8 @@
+"""``python -m BoneWatertightLib``: see :mod:`BoneWatertightLib.cli`."""
+
+import sys
+
+from .cli import main
+
+if __name__ == "__main__":
+    sys.exit(main())

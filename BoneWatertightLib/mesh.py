@@ -1,0 +1,149 @@
+"""Triangle-mesh container and conversions (numpy <-> vtkPolyData)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+
+@dataclass
+class Surface:
+    """A triangle mesh in physical coordinates (mm).
+
+    ``vertices`` (n, 3) float64, ``faces`` (m, 3) int64 with counter-clockwise order seen
+    from outside. ``coordinate_system`` is "LPS" (ITK, the library's default) or "RAS".
+    ``point_data`` holds per-vertex arrays (e.g. "DistanceToConstraints").
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    coordinate_system: str = "LPS"
+    point_data: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.vertices)
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.faces)
+
+    def copy(self) -> "Surface":
+        return Surface(self.vertices.copy(), self.faces.copy(), self.coordinate_system,
+                       {k: np.array(v, copy=True) for k, v in self.point_data.items()})
+
+    def vertex_normals(self) -> np.ndarray:
+        return vertex_normals(self.vertices, self.faces)
+
+    def to_ras(self) -> "Surface":
+        """The same surface in RAS (x and y negated); a no-op if already RAS."""
+        if self.coordinate_system == "RAS":
+            return self.copy()
+        out = self.copy()
+        out.vertices[:, :2] *= -1.0
+        out.coordinate_system = "RAS"
+        return out
+
+    def to_lps(self) -> "Surface":
+        if self.coordinate_system == "LPS":
+            return self.copy()
+        out = self.copy()
+        out.vertices[:, :2] *= -1.0
+        out.coordinate_system = "LPS"
+        return out
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray, normalize: bool = True) -> np.ndarray:
+    v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
+    n = np.cross(v1 - v0, v2 - v0)
+    if normalize:
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        n = n / np.maximum(length, 1e-300)
+    return n
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals."""
+    fn = face_normals(vertices, faces, normalize=False)
+    vn = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(vn, faces[:, k], fn)
+    length = np.linalg.norm(vn, axis=1, keepdims=True)
+    return vn / np.maximum(length, 1e-300)
+
+
+def enclosed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Signed volume (positive for a closed, outward-oriented surface)."""
+    v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
+    return float(np.einsum("ij,ij->i", v0, np.cross(v1, v2)).sum() / 6.0)
+
+
+def surface_area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    return float(0.5 * np.linalg.norm(face_normals(vertices, faces, normalize=False), axis=1).sum())
+
+
+def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return float(np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1).mean())
+
+
+def to_polydata(surface: Surface, normals: bool = True):
+    """vtkPolyData with points, triangles, point normals and the point_data arrays."""
+    import vtk
+    from vtk.util import numpy_support as ns
+
+    pts = vtk.vtkPoints()
+    pts.SetData(ns.numpy_to_vtk(surface.vertices.astype(np.float64), deep=True))
+    n = len(surface.faces)
+    cells = vtk.vtkCellArray()
+    offsets = np.arange(0, 3 * n + 1, 3, dtype=np.int64)
+    cells.SetData(ns.numpy_to_vtkIdTypeArray(offsets, deep=True),
+                  ns.numpy_to_vtkIdTypeArray(surface.faces.ravel().astype(np.int64), deep=True))
+    poly = vtk.vtkPolyData()
+    poly.SetPoints(pts)
+    poly.SetPolys(cells)
+    if normals and len(surface.faces):
+        arr = ns.numpy_to_vtk(surface.vertex_normals(), deep=True)
+        arr.SetName("Normals")
+        poly.GetPointData().SetNormals(arr)
+    for name, values in surface.point_data.items():
+        arr = ns.numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64), deep=True)
+        arr.SetName(name)
+        poly.GetPointData().AddArray(arr)
+    return poly
+
+
+def from_polydata(poly, coordinate_system: str = "LPS") -> Surface:
+    """Surface from a vtkPolyData of triangles (other polygons are triangulated)."""
+    import vtk
+    from vtk.util import numpy_support as ns
+
+    if poly.GetNumberOfPolys() and poly.GetPolys().GetMaxCellSize() > 3:
+        tri = vtk.vtkTriangleFilter()
+        tri.SetInputData(poly)
+        tri.PassVertsOff()
+        tri.PassLinesOff()
+        tri.Update()
+        poly = tri.GetOutput()
+    pts = ns.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64) if poly.GetPoints() else np.zeros((0, 3))
+    polys = poly.GetPolys()
+    if polys.GetNumberOfCells():
+        conn = ns.vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64)
+        faces = conn.reshape(-1, 3)
+    else:
+        faces = np.zeros((0, 3), dtype=np.int64)
+    pd = poly.GetPointData()
+    point_data = {}
+    for i in range(pd.GetNumberOfArrays()):
+        arr = pd.GetArray(i)
+        if arr is None or arr.GetName() in (None, "Normals"):
+            continue
+        if arr.GetNumberOfComponents() == 1:
+            point_data[arr.GetName()] = ns.vtk_to_numpy(arr).astype(np.float64)
+    return Surface(pts, faces, coordinate_system, point_data)

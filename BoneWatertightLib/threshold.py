@@ -1,0 +1,237 @@
+"""Stage 3: two-step thresholding with morphology (paper §2.1) and the constraint points.
+
+W_H0 = [H0, theta_max] and W_HT = [HT, theta_max]. Bone k is the part of W_H0 that the rough
+segment points at. If W_H0 still joins bone k to a neighbour, we erode (6-connected, one voxel at
+a time, at most m times) until the component under the segment no longer spills out of the
+segment's region. The paper then dilates back m times and intersects with W_H0; plain dilation
+would re-grow across the bridge it just cut, so we let bone k and its neighbours grow back
+*competitively*: every W_H0 voxel within m voxels goes to the nearest eroded seed (ties to bone k).
+The same competition, seeded by the H0 result, decides which W_HT voxels belong to bone k, which
+keeps a cartilage-filled joint gap from becoming a bridge. Finally opening (l) and closing (n).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from .errors import SeparationError, ThresholdError
+from .params import Parameters
+
+SIX = ndimage.generate_binary_structure(3, 1)
+
+
+@dataclass
+class ThresholdResult:
+    w_h0: np.ndarray        # bool, bone k at [H0, theta_max] after morphology
+    w_ht: np.ndarray        # bool, bone k at [HT, theta_max] after morphology
+    occupancy: np.ndarray   # bool, filled bone k (inside / outside decisions)
+    roi: np.ndarray         # bool, region the rough segment points at
+    info: dict = field(default_factory=dict)
+
+
+def _block_any(mask: np.ndarray, f: int) -> np.ndarray:
+    if f == 1:
+        return mask.copy()
+    pad = [(0, (-s) % f) for s in mask.shape]
+    m = np.pad(mask, pad)
+    z, y, x = (s // f for s in m.shape)
+    return m.reshape(z, f, y, f, x, f).any(axis=(1, 3, 5))
+
+
+def segment_region(segment: np.ndarray, spacing: float, close_mm: float = 6.0,
+                   dilate_mm: float = 3.0) -> np.ndarray:
+    """Closed and dilated rough segment: fills its holes and missing chunks up to ~2*close_mm.
+
+    Computed on a ~2 mm grid with distance maps, because a 6 mm closing at 0.5 mm is costly."""
+    f = max(1, int(round(2.0 / spacing)))
+    cs = spacing * f
+    coarse = _block_any(segment, f)
+    pad = int(np.ceil((close_mm + dilate_mm) / cs)) + 2
+    coarse = np.pad(coarse, pad)
+    d_out = ndimage.distance_transform_edt(~coarse) * cs
+    dilated = d_out <= close_mm
+    d_in = ndimage.distance_transform_edt(dilated) * cs
+    closed = (d_in > close_mm) | coarse
+    closed = ndimage.binary_fill_holes(closed)
+    d_closed = ndimage.distance_transform_edt(~closed) * cs
+    region = d_closed <= dilate_mm
+    region = region[pad:-pad, pad:-pad, pad:-pad]
+    idx = [np.minimum(np.arange(s) // f, region.shape[a] - 1) for a, s in enumerate(segment.shape)]
+    return region[np.ix_(*idx)]
+
+
+def _components(mask: np.ndarray, roi: np.ndarray):
+    lab, n = ndimage.label(mask, structure=SIX)
+    size = np.bincount(lab.ravel(), minlength=n + 1)
+    inroi = np.bincount(lab[roi], minlength=n + 1)
+    size[0] = 0
+    inroi[0] = 0
+    return lab, n, size, inroi
+
+
+def _competitive_assign(candidates: np.ndarray, bone_seed: np.ndarray, other_seed: np.ndarray,
+                        max_dist_vox: float) -> np.ndarray:
+    """Voxels of ``candidates`` nearer to bone_seed than to other_seed, within max_dist_vox."""
+    d_bone = ndimage.distance_transform_edt(~bone_seed)
+    own = candidates & (d_bone <= max_dist_vox)
+    if other_seed.any():
+        d_other = ndimage.distance_transform_edt(~other_seed)
+        own &= d_bone <= d_other
+    return own
+
+
+def _keep_connected_to(mask: np.ndarray, anchor: np.ndarray) -> np.ndarray:
+    lab, n = ndimage.label(mask, structure=SIX)
+    if n <= 1:
+        return mask
+    keep = np.zeros(n + 1, dtype=bool)
+    keep[np.unique(lab[anchor & mask])] = True
+    keep[0] = False
+    return keep[lab]
+
+
+def two_step_threshold(ct_f: np.ndarray, segment: np.ndarray, spacing: float,
+                       params: Parameters, progress=None) -> ThresholdResult:
+    tmax = params.theta_max
+    roi = segment_region(segment, spacing, dilate_mm=params.segment_dilation)
+    w0 = (ct_f >= params.h0) & (ct_f <= tmax)
+    wt = (ct_f >= params.ht) & (ct_f <= tmax)
+    seg_vals = ct_f[segment]
+    if not wt[segment].any():
+        raise ThresholdError(
+            f"No voxel of the segment region lies in [HT, theta_max] = [{params.ht:g}, {tmax:g}] HU "
+            f"(segment HU range {seg_vals.min():.0f} to {seg_vals.max():.0f}): lower HT or check "
+            "that the volume is a CT in Hounsfield units.")
+    if not w0[segment].any():
+        raise ThresholdError(
+            f"No voxel of the segment region lies in [H0, theta_max] = [{params.h0:g}, {tmax:g}] HU "
+            f"(segment HU up to {seg_vals.max():.0f}): lower H0 (it must stay above HT).")
+    if progress:
+        progress(0.1, "thresholds")
+
+    eroded = w0
+    separated_at = None
+    stats = []
+    lab = None
+    for e in range(0, params.max_erosions + 1):
+        if e > 0:
+            eroded = ndimage.binary_erosion(eroded, structure=SIX)
+        lab, n, size, inroi = _components(eroded, roi)
+        if n == 0 or inroi.max() == 0:
+            break
+        main = int(np.argmax(inroi))
+        frac = inroi[main] / size[main]
+        stats.append({"erosions": e, "components": int(n), "main_voxels": int(size[main]),
+                      "main_fraction_in_region": float(frac)})
+        # Spilling out of the segment's region by less than 15 % is bone k's own surface near
+        # a rough segment border, not a neighbour.
+        if frac >= 0.85:
+            separated_at = e
+            break
+        if progress:
+            progress(0.1 + 0.3 * (e + 1) / (params.max_erosions + 1), f"erosion {e + 1}")
+    if separated_at is None:
+        last = stats[-1]["main_fraction_in_region"] if stats else 0.0
+        raise SeparationError(
+            f"After {params.max_erosions} erosions the bone under the segment is still joined to a "
+            f"neighbour ({100 * (1 - last):.0f} % of it lies outside the segment's region). Try: raise H0 "
+            f"(now {params.h0:g} HU), raise max_erosions (now {params.max_erosions}), use a finer resample "
+            "spacing, or draw the rough segment over more of the bone.")
+    bone_lab = np.flatnonzero((inroi >= 0.5 * size) & (inroi >= 0.02 * inroi[main]) & (size > 0))
+    is_bone = np.zeros(len(size), dtype=bool)
+    is_bone[bone_lab] = True
+    bone_seed = is_bone[lab]
+    other_seed = (lab > 0) & ~bone_seed
+    if progress:
+        progress(0.5, "competitive dilation")
+    if separated_at == 0:
+        w_h0 = bone_seed
+    else:
+        w_h0 = _competitive_assign(w0, bone_seed, other_seed, separated_at + 0.5)
+        w_h0 = _keep_connected_to(w_h0, bone_seed)
+    neighbours_h0 = w0 & ~w_h0 & ~_competitive_assign(w0, bone_seed, other_seed, np.inf)
+    # HT voxels of bone k: nearer to bone k's H0 voxels than to a neighbour's, within grow_mm.
+    grow_vox = max(3.0, 3.0 / spacing)
+    w_ht = _competitive_assign(wt, w_h0, neighbours_h0, grow_vox) | w_h0
+    w_ht = _keep_connected_to(w_ht, w_h0)
+    if progress:
+        progress(0.75, "opening / closing")
+    w_h0 = _open_close(w_h0, params)
+    w_ht = _open_close(w_ht, params) | w_h0
+    if not w_h0.any():
+        raise ThresholdError(
+            "Opening removed the whole bone at H0: lower the opening iterations (l) or H0.")
+    occupancy = ndimage.binary_fill_holes(w_ht)
+    info = {
+        "erosions_used": int(separated_at),
+        "erosion_steps": stats,
+        "voxels_h0": int(w_h0.sum()),
+        "voxels_ht": int(w_ht.sum()),
+        "neighbour_voxels_h0": int(neighbours_h0.sum()),
+    }
+    if progress:
+        progress(1.0, "thresholding done")
+    return ThresholdResult(w_h0=w_h0, w_ht=w_ht, occupancy=occupancy, roi=roi, info=info)
+
+
+def _open_close(mask: np.ndarray, params: Parameters) -> np.ndarray:
+    # Paper: Open^l . Close^n (closing first fills pores, opening then removes spurs).
+    out = mask
+    if params.closing:
+        pad = params.closing + 1
+        out = np.pad(out, pad)
+        out = ndimage.binary_closing(out, structure=SIX, iterations=params.closing)
+        out = out[pad:-pad, pad:-pad, pad:-pad]
+    if params.opening:
+        opened = ndimage.binary_opening(out, structure=SIX, iterations=params.opening)
+        # Opening must not cut the bone into pieces: keep what it removed where that happens.
+        out = opened if opened.any() else out
+    return out
+
+
+def boundary_voxels(mask: np.ndarray) -> np.ndarray:
+    """Voxels of mask with at least one 6-neighbour outside it."""
+    return mask & ~ndimage.binary_erosion(mask, structure=SIX, border_value=0)
+
+
+def voxel_points(mask: np.ndarray, spacing: float) -> np.ndarray:
+    """Voxel centres of mask in grid millimetres, x-y-z order."""
+    idx = np.nonzero(mask)
+    return np.stack([idx[2], idx[1], idx[0]], axis=1).astype(np.float64) * spacing
+
+
+def crossing_points(values: np.ndarray, inside: np.ndarray, level: float, spacing: float) -> np.ndarray:
+    """Sub-voxel points where the image crosses ``level`` between an inside and an outside voxel.
+
+    Only grid edges that leave ``inside`` are used, so the points lie on bone k's outer boundary
+    (the marching-cubes vertex positions of the HT isosurface restricted to bone k)."""
+    pts = []
+    for axis in range(3):
+        for step in (1, -1):
+            out_nb = np.roll(inside, -step, axis=axis)
+            # np.roll wraps around; the working grid has a margin, so border voxels are outside.
+            sl = [slice(None)] * 3
+            sl[axis] = slice(-1, None) if step == 1 else slice(0, 1)
+            out_nb[tuple(sl)] = True
+            edge = inside & ~out_nb
+            idx = np.nonzero(edge)
+            if len(idx[0]) == 0:
+                continue
+            nb = list(idx)
+            nb[axis] = nb[axis] + step
+            f_in = values[idx]
+            f_out = values[tuple(nb)]
+            denom = f_in - f_out
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.where((f_in >= level) & (f_out < level) & (denom > 0),
+                             (f_in - level) / denom, 0.5)
+            t = np.clip(t, 0.0, 1.0)
+            p = np.stack([idx[2], idx[1], idx[0]], axis=1).astype(np.float64)
+            p[:, 2 - axis] += step * t
+            pts.append(p * spacing)
+    if not pts:
+        return np.zeros((0, 3))
+    return np.concatenate(pts)

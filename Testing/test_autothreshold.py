@@ -1,0 +1,69 @@
+"""BoneWatertightLib.autothreshold: H0/HT proposal from the HU histogram around the segment."""
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from BoneWatertightLib.autothreshold import propose_thresholds, tissue_levels
+from BoneWatertightLib.errors import EmptySegmentError, ThresholdError
+
+
+def _phantom(soft=40.0, cortex=1400.0, marrow=100.0, noise=15.0, seed=1):
+    """Tube bone: cortical shell (r 6-9 mm) around marrow, in soft tissue; 0.8 mm voxels."""
+    n = 48
+    z, y, x = np.mgrid[0:n, 0:n, 0:n].astype(float) * 0.8
+    r = np.hypot(x - n * 0.4, y - n * 0.4)
+    hu = np.full(r.shape, soft)
+    hu[r <= 9.0] = cortex
+    hu[r <= 6.0] = marrow
+    hu += np.random.default_rng(seed).normal(0, noise, hu.shape)
+    ct = sitk.GetImageFromArray(hu.astype(np.int16))
+    ct.SetSpacing((0.8, 0.8, 0.8))
+    ct.SetOrigin((-10.0, 5.0, 3.0))
+    mask = sitk.GetImageFromArray((r <= 8.0).astype(np.uint8))  # rough, a bit too small
+    mask.CopyInformation(ct)
+    return ct, mask
+
+
+def test_femur_like_contrast_gives_paper_defaults():
+    ct, mask = _phantom()
+    p = propose_thresholds(ct, mask)
+    assert p["soft_tissue"] == pytest.approx(40, abs=10)
+    assert p["cortex"] == pytest.approx(1400, abs=60)
+    assert p["ht"] == pytest.approx(150, abs=20)
+    assert p["h0"] == pytest.approx(300, abs=25)
+    assert p["ht"] < p["h0"] < p["theta_max"]
+
+
+def test_thresholds_scale_with_contrast():
+    low = propose_thresholds(*_phantom(cortex=700.0))
+    high = propose_thresholds(*_phantom(cortex=1800.0))
+    assert low["h0"] < high["h0"] and low["ht"] < high["ht"]
+    assert low["ht"] >= low["soft_tissue"] + 50
+
+
+def test_mask_on_another_grid_is_resampled():
+    ct, mask = _phantom()
+    coarse = sitk.Resample(mask, [24, 24, 24], sitk.Transform(), sitk.sitkNearestNeighbor, ct.GetOrigin(),
+                           (1.6, 1.6, 1.6), ct.GetDirection(), 0, sitk.sitkUInt8)
+    a = propose_thresholds(ct, mask)
+    b = propose_thresholds(ct, coarse)
+    assert abs(a["h0"] - b["h0"]) <= 25 and abs(a["ht"] - b["ht"]) <= 15
+
+
+def test_errors():
+    ct, mask = _phantom()
+    with pytest.raises(EmptySegmentError):
+        propose_thresholds(ct, mask * 0)
+    flat, _ = _phantom(cortex=40.0, marrow=40.0)
+    with pytest.raises(ThresholdError, match="No bone contrast"):
+        propose_thresholds(flat, mask)
+
+
+def test_tissue_levels_mode_is_robust_to_bone_in_shell():
+    rng = np.random.default_rng(0)
+    shell = np.concatenate([rng.normal(35, 10, 5000), rng.normal(1200, 100, 1500)])
+    inside = np.concatenate([rng.normal(1300, 80, 3000), rng.normal(120, 30, 3000)])
+    soft, cortex = tissue_levels(inside, shell)
+    assert soft == pytest.approx(35, abs=10)
+    assert cortex > 1300

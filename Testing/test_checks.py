@@ -1,0 +1,406 @@
+"""Tests of the surface validator (BoneWatertightLib/checks.py, SPEC §4)."""
+
+import itertools
+import json
+import time
+
+import numpy as np
+import pytest
+
+from BoneWatertightLib.checks import check_surface, find_self_intersections, require_valid
+from BoneWatertightLib.errors import SurfaceCheckError
+from BoneWatertightLib.mesh import Surface
+
+
+# ---------------------------------------------------------------------------------------------
+# Test meshes, built by hand
+
+def icosphere(level=2, radius=1.0, centre=(0.0, 0.0, 0.0)):
+    t = (1 + 5 ** 0.5) / 2
+    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t],
+                  [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
+    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9],
+                  [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2],
+                  [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
+                  [8, 6, 7], [9, 8, 1]])
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for _ in range(level):
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        ue, inv = np.unique(e, axis=0, return_inverse=True)
+        mid = v[ue[:, 0]] + v[ue[:, 1]]
+        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
+        ab, bc, ca = (inv.reshape(3, -1) + len(v))
+        v = np.vstack([v, mid])
+        a, b, c = f.T
+        f = np.concatenate([np.stack(x, axis=1) for x in
+                            ((a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca))])
+    return v * radius + np.asarray(centre, float), f.astype(np.int64)
+
+
+def torus(major=3.0, minor=1.0, nu=40, nv=20):
+    u, w = np.meshgrid(np.arange(nu) * 2 * np.pi / nu, np.arange(nv) * 2 * np.pi / nv,
+                       indexing="ij")
+    r = major + minor * np.cos(w)
+    v = np.stack([r * np.cos(u), r * np.sin(u), minor * np.sin(w)], axis=-1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
+    a = i * nv + j
+    b = ((i + 1) % nu) * nv + j
+    c = ((i + 1) % nu) * nv + (j + 1) % nv
+    d = i * nv + (j + 1) % nv
+    f = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                        np.stack([a, c, d], -1).reshape(-1, 3)])
+    return v, f.astype(np.int64)
+
+
+def tetrahedron(offset=(0, 0, 0), scale=1.0):
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float) * scale + offset
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    return v, f
+
+
+def merge(*meshes):
+    vs, fs, n = [], [], 0
+    for v, f in meshes:
+        vs.append(v)
+        fs.append(np.asarray(f) + n)
+        n += len(v)
+    return np.vstack(vs), np.vstack(fs)
+
+
+def pair_set(pairs):
+    return {tuple(p) for p in np.asarray(pairs).tolist()}
+
+
+# ---------------------------------------------------------------------------------------------
+# Clean surfaces
+
+def test_icosphere_is_valid_genus_0():
+    v, f = icosphere(3, radius=20.0, centre=(-120.0, 35.0, 400.0))
+    r = check_surface(v, f)
+    assert r.ok, r.problems
+    assert r.problems == []
+    assert r.closed and r.edge_manifold and r.vertex_manifold and r.consistent_orientation
+    assert r.n_components == 1 and r.genus == 0 and r.outward
+    assert r.n_degenerate == 0 and r.n_self_intersections == 0
+    assert r.n_vertices == len(v) and r.n_faces == len(f) and r.unreferenced_vertices == 0
+    # Inscribed polyhedron: slightly below the sphere's volume.
+    assert 0.97 * 4 / 3 * np.pi * 20 ** 3 < r.volume < 4 / 3 * np.pi * 20 ** 3
+    json.dumps(r.to_dict())
+
+
+def test_torus_is_valid_genus_1():
+    v, f = torus()
+    r = check_surface(v, f)
+    assert r.ok, r.problems
+    assert r.genus == 1
+    assert r.volume == pytest.approx(2 * np.pi ** 2 * 3.0 * 1.0, rel=0.03)
+
+
+def test_unreferenced_vertices_are_counted_but_not_an_error():
+    v, f = icosphere(1)
+    v = np.vstack([v, [[5.0, 5.0, 5.0]]])
+    r = check_surface(v, f)
+    assert r.ok and r.unreferenced_vertices == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Topological defects
+
+def test_hole_is_not_closed():
+    v, f = icosphere(2)
+    r = check_surface(v, f[1:])
+    assert not r.ok and not r.closed and not r.edge_manifold
+    assert r.n_boundary_edges == 3 and r.genus is None
+    assert any("boundary edges" in p for p in r.problems)
+
+
+def test_two_spheres_are_two_components():
+    mesh = merge(icosphere(2), icosphere(2, centre=(5.0, 0, 0)))
+    r = check_surface(*mesh)
+    assert not r.ok and r.n_components == 2 and r.genus is None
+    assert r.n_self_intersections == 0
+    assert any("2 connected components" in p for p in r.problems)
+    assert check_surface(*mesh, expect_components=2).ok
+    assert check_surface(*mesh, expect_components=None).ok
+
+
+def test_inverted_faces_are_not_outward():
+    v, f = icosphere(2)
+    r = check_surface(v, f[:, ::-1])
+    assert not r.ok and not r.outward and r.volume < 0 and r.consistent_orientation
+    assert any("inward" in p for p in r.problems)
+
+
+def test_one_flipped_face_is_inconsistent_orientation():
+    v, f = icosphere(2)
+    f = f.copy()
+    f[7] = f[7, ::-1]
+    r = check_surface(v, f)
+    assert not r.ok and not r.consistent_orientation and r.n_misoriented_edges == 3
+    assert r.closed and r.edge_manifold and r.genus is None
+
+
+def test_bow_tie_vertex_is_not_vertex_manifold():
+    # Two tetrahedra sharing only their apex (vertex 3 of the first is vertex 0 of the second).
+    v1, f1 = tetrahedron()
+    v2, f2 = tetrahedron(offset=(0, 0, 1))
+    v = np.vstack([v1, v2[1:]])
+    f2 = np.where(f2 == 0, 3, f2 + 3)
+    r = check_surface(v, np.vstack([f1, f2]))
+    assert r.closed and r.edge_manifold and r.consistent_orientation
+    assert not r.vertex_manifold and r.n_nonmanifold_vertices == 1
+    assert r.n_components == 1 and not r.ok and r.n_self_intersections == 0
+
+
+def test_bow_tie_of_two_spheres():
+    va, fa = icosphere(2)
+    vb, fb = icosphere(2, centre=(2.0, 0, 0))
+    # Glue: the vertex of b nearest to a is replaced by a's vertex at (1, 0, 0).
+    ia = int(np.argmin(np.linalg.norm(va - [1, 0, 0], axis=1)))
+    ib = int(np.argmin(np.linalg.norm(vb - [1, 0, 0], axis=1)))
+    fb = np.where(fb == ib, -1, fb + len(va))
+    fb[fb == -1] = ia
+    r = check_surface(np.vstack([va, vb]), np.vstack([fa, fb]))
+    assert not r.vertex_manifold and r.n_nonmanifold_vertices == 1
+    assert r.n_components == 1 and r.unreferenced_vertices == 1
+
+
+def test_edge_with_three_faces_is_not_edge_manifold():
+    v, f = icosphere(1)
+    a, b = f[0, 0], f[0, 1]
+    fin_vertex = (v[a] + v[b]) * 1.5  # outside the sphere
+    v = np.vstack([v, fin_vertex])
+    r = check_surface(v, np.vstack([f, [[a, b, len(v) - 1]]]))
+    assert not r.ok and not r.edge_manifold and r.n_nonmanifold_edges == 1
+    assert any("more than 2 faces" in p for p in r.problems)
+
+
+def test_two_tetrahedra_sharing_an_edge():
+    v1, f1 = tetrahedron()
+    v2, f2 = tetrahedron(offset=(1, 0, 0), scale=-1.0)  # mirrored: shares edge 0-1 with v1
+    v2 = v2 * [1, -1, 1] + [0, 0, 0]
+    idx = np.array([1, 0, -1, -2])  # second tetra: (1,0,0) -> 1, (0,0,0) -> 0, two new
+    v = np.vstack([v1, v2[2:]])
+    f2 = f2[:, ::-1]  # mirroring flips orientation; restore outward faces
+    f2 = np.where(idx[f2] >= 0, idx[f2], 4 + (-idx[f2] - 1))
+    r = check_surface(v, np.vstack([f1, f2]))
+    assert r.closed and not r.edge_manifold and r.n_nonmanifold_edges == 1
+    assert not r.ok
+
+
+# ---------------------------------------------------------------------------------------------
+# Geometric defects
+
+def test_degenerate_faces_are_counted():
+    v, f = icosphere(2)
+    a, b, c = f[0]
+    v = v.copy()
+    v[c] = 0.5 * (v[a] + v[b])  # face 0 becomes a zero-area sliver
+    r = check_surface(v, f)
+    assert r.n_degenerate >= 1 and not r.ok
+    assert any("degenerate" in p for p in r.problems)
+    # A repeated index and a duplicated face are degenerate too.
+    v, f = icosphere(1)
+    r = check_surface(v, np.vstack([f, [[0, 0, 1]]]))
+    assert r.n_degenerate == 1 and not r.ok
+    r = check_surface(v, np.vstack([f, f[3:4, [1, 2, 0]]]))
+    assert r.n_duplicate_faces == 1 and r.n_degenerate == 1 and not r.ok
+    assert r.n_self_intersections == 0  # a duplicate is not double-counted as a crossing
+
+
+def test_vertex_pushed_through_sphere_self_intersects():
+    v, f = icosphere(3, radius=10.0)
+    v = v.copy()
+    v[0] *= -1.5  # through the centre and out of the opposite side
+    r = check_surface(v, f)
+    assert not r.ok and r.n_self_intersections > 0
+    assert r.closed and r.edge_manifold and r.vertex_manifold
+    # Every intersecting pair involves a face of the moved vertex.
+    moved = set(np.flatnonzero((f == 0).any(axis=1)).tolist())
+    pairs = find_self_intersections(v, f)
+    assert len(pairs) == r.n_self_intersections
+    assert all(a in moved or b in moved for a, b in pairs.tolist())
+    assert any("intersecting faces" in p for p in r.problems)
+
+
+def test_interpenetrating_spheres_self_intersect():
+    va, fa = icosphere(3, radius=1.0)
+    vb, fb = icosphere(3, radius=1.0, centre=(1.2, 0.1, 0.05))
+    v, f = merge((va, fa), (vb, fb))
+    r = check_surface(v, f, expect_components=None)
+    assert not r.ok and r.n_self_intersections > 20
+    pairs = find_self_intersections(v, f)
+    # Each pair has one face of each sphere, and the count matches the report.
+    assert len(pairs) == r.n_self_intersections
+    assert ((pairs[:, 0] < len(fa)) & (pairs[:, 1] >= len(fa))).all()
+    assert len(r.self_intersection_pairs) <= 100
+    assert len(find_self_intersections(v, f, max_pairs=5)) == 5
+
+
+def test_touching_is_not_an_intersection():
+    # A tetrahedron whose apex touches the middle of another's face, and two tetrahedra
+    # touching along an edge: contacts, not crossings.
+    v1, f1 = tetrahedron()
+    v2, f2 = tetrahedron(offset=(0.2, 0.2, -1.0))  # its apex (0.2,0.2,0) lies on face z=0
+    assert len(find_self_intersections(*merge((v1, f1), (v2, f2)))) == 0
+    v3 = v1 * [-1, -1, 1]  # turned 180 degrees about z: touches along the z axis only
+    assert len(find_self_intersections(*merge((v1, f1), (v3, f1)))) == 0
+    # Mirrored in x instead, the two faces x=0 coincide: an overlap of positive area is reported.
+    v5 = v1 * [-1, 1, 1]
+    assert pair_set(find_self_intersections(*merge((v1, f1), (v5, f1[:, ::-1])))) == {(2, 6)}
+    # ... but pushing it a little further in is a crossing.
+    v4 = v2 + [0, 0, 0.01]
+    assert len(find_self_intersections(*merge((v1, f1), (v4, f2)))) > 0
+
+
+def test_shared_vertex_and_shared_edge_cases():
+    # Shared edge, folded flat onto each other (coplanar, same side).
+    v = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.6, 0.8, 0]], float)
+    assert pair_set(find_self_intersections(v, [[0, 1, 2], [1, 0, 3]])) == {(0, 1)}
+    # Shared edge, coplanar but on opposite sides: a flat hinge, fine.
+    v2 = v * [1, 1, 1]
+    v2[3] = [0.6, -0.8, 0]
+    assert len(find_self_intersections(v2, [[0, 1, 2], [1, 0, 3]])) == 0
+    # Shared edge, sharp but non-zero dihedral: fine.
+    v3 = v.copy()
+    v3[3] = [0.6, 0.8, 0.05]
+    assert len(find_self_intersections(v3, [[0, 1, 2], [1, 0, 3]])) == 0
+    # Shared vertex, coplanar, overlapping sectors.
+    w = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [1, 0.3, 0], [1, 1.5, 0]], float)
+    assert pair_set(find_self_intersections(w, [[0, 1, 2], [0, 3, 4]])) == {(0, 1)}
+    # Shared vertex, coplanar, disjoint sectors.
+    w2 = w.copy()
+    w2[3:] = [[-1, -0.3, 0], [-1, -1.5, 0]]
+    assert len(find_self_intersections(w2, [[0, 1, 2], [0, 3, 4]])) == 0
+    # Shared vertex, not coplanar: the opposite edge pierces the other triangle.
+    w3 = w.copy()
+    w3[3:] = [[0.5, 0.5, -1.0], [0.5, 0.5, 1.0]]
+    assert pair_set(find_self_intersections(w3, [[0, 1, 2], [0, 3, 4]])) == {(0, 1)}
+    # ... and the same triangle turned so that it only touches at the shared vertex.
+    w4 = w.copy()
+    w4[3:] = [[-0.5, -0.5, -1.0], [-0.5, -0.5, 1.0]]
+    assert len(find_self_intersections(w4, [[0, 1, 2], [0, 3, 4]])) == 0
+    # Disjoint coplanar overlapping triangles.
+    u = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [0.5, 0.5, 0], [3, 0.5, 0], [0.5, 3, 0]])
+    assert pair_set(find_self_intersections(u, [[0, 1, 2], [3, 4, 5]])) == {(0, 1)}
+
+
+# ---------------------------------------------------------------------------------------------
+# Self-intersection finder against a brute-force reference
+
+def _reference_pair(P, Q, n_shared):
+    """Independent test: overlap of the two triangles' intervals on the planes' common line.
+
+    For triangles in general position (not coplanar): they share a point other than common
+    vertices exactly when the intervals overlap with positive length. Shared edges never count
+    (no folds in general position).
+    """
+    if n_shared >= 2:
+        return False
+    nP = np.cross(P[1] - P[0], P[2] - P[0])
+    nQ = np.cross(Q[1] - Q[0], Q[2] - Q[0])
+    u = np.cross(nP, nQ)
+    if np.linalg.norm(u) < 1e-12 * np.linalg.norm(nP) * np.linalg.norm(nQ):
+        return False  # parallel planes do not occur in the random tests
+
+    def interval(T, n, origin, shared_mask):
+        d = (T - origin) @ n
+        d[shared_mask] = 0.0
+        ts = []
+        for a in range(3):
+            if d[a] == 0:
+                ts.append(T[a] @ u)
+            b = (a + 1) % 3
+            if d[a] * d[b] < 0:
+                x = T[a] + (T[b] - T[a]) * (d[a] / (d[a] - d[b]))
+                ts.append(x @ u)
+        return (min(ts), max(ts)) if ts else None
+
+    shared_p = np.array([any((P[a] == Q[b]).all() for b in range(3)) for a in range(3)])
+    shared_q = np.array([any((Q[a] == P[b]).all() for b in range(3)) for a in range(3)])
+    ip = interval(P, nQ, Q[0], shared_p)
+    iq = interval(Q, nP, P[0], shared_q)
+    if ip is None or iq is None:
+        return False
+    overlap = min(ip[1], iq[1]) - max(ip[0], iq[0])
+    return overlap > 1e-9 * np.linalg.norm(u)
+
+
+def _brute_force(v, f):
+    """Every pair of faces whose bounding boxes touch goes through the reference test."""
+    tri = v[f]
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    ii, jj = np.triu_indices(len(f), k=1)
+    near = ((lo[ii] <= hi[jj]) & (lo[jj] <= hi[ii])).all(axis=1)
+    out = set()
+    for i, j in zip(ii[near].tolist(), jj[near].tolist()):
+        n_shared = len(set(f[i].tolist()) & set(f[j].tolist()))
+        if _reference_pair(v[f[i]], v[f[j]], n_shared):
+            out.add((i, j))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_random_soup_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    n = 14
+    v = rng.random((n, 3)) * 10.0 + [100.0, -50.0, 20.0]
+    triples = np.array(list(itertools.combinations(range(n), 3)))
+    f = triples[rng.choice(len(triples), 40, replace=False)]
+    f = np.array([rng.permutation(t) for t in f])
+    mine = pair_set(find_self_intersections(v, f))
+    ref = _brute_force(v, f)
+    assert mine == ref
+    # The soup really is tangled, and pairs with a shared vertex cross too.
+    assert len(ref) > 10
+    assert any(len(set(f[i].tolist()) & set(f[j].tolist())) == 1 for i, j in ref)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_noisy_sphere_matches_brute_force(seed):
+    rng = np.random.default_rng(100 + seed)
+    v, f = icosphere(2)
+    v = v + rng.normal(scale=0.12, size=v.shape)
+    mine = pair_set(find_self_intersections(v, f))
+    assert mine == _brute_force(v, f)
+    print(f"noisy sphere {seed}: {len(mine)} intersecting pairs")
+    r = check_surface(v, f)
+    assert r.n_self_intersections == len(mine) and r.ok == (len(mine) == 0)
+
+
+# ---------------------------------------------------------------------------------------------
+# require_valid and speed
+
+def test_require_valid():
+    v, f = icosphere(2, radius=30.0)
+    report = require_valid(Surface(v, f), "bone surface")
+    assert report.ok
+    with pytest.raises(SurfaceCheckError) as err:
+        require_valid(Surface(v, f[2:]), "bone surface")
+    msg = str(err.value)
+    assert "bone surface" in msg and "boundary edges" in msg and "not closed" in msg
+    assert err.value.report is not None and not err.value.report.ok
+    with pytest.raises(SurfaceCheckError, match="no faces"):
+        require_valid(Surface(v, np.zeros((0, 3), int)))
+
+
+def test_large_sphere_is_fast():
+    vtk = pytest.importorskip("vtk")
+    from vtk.util import numpy_support as ns
+
+    src = vtk.vtkSphereSource()
+    src.SetRadius(40.0)
+    src.SetCenter(10.0, -150.0, 300.0)
+    src.SetThetaResolution(320)
+    src.SetPhiResolution(320)
+    src.Update()
+    poly = src.GetOutput()
+    v = ns.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64)
+    f = ns.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).reshape(-1, 3).astype(np.int64)
+    assert len(f) > 200_000
+    t0 = time.process_time()
+    r = check_surface(v, f)
+    seconds = time.process_time() - t0
+    print(f"check_surface on {len(f)} faces: {seconds:.2f} s CPU ({r.seconds:.2f} s wall)")
+    assert r.ok, r.problems
+    assert seconds < 5.0
