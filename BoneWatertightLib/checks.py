@@ -1,4 +1,4 @@
-"""Validation of output surfaces: watertight, 2-manifold, oriented, no self-intersections (SPEC §4).
+"""Checks of output surfaces: watertight, 2-manifold, oriented, no self-intersections (§4).
 
 Every surface the library returns goes through :func:`check_surface` (or :func:`require_valid`,
 which raises :class:`~BoneWatertightLib.errors.SurfaceCheckError`). Everything is vectorised
@@ -120,7 +120,7 @@ def check_surface(vertices, faces, *, expect_components: Optional[int] = 1,
     repeated = ((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2])
                 | (faces[:, 2] == faces[:, 0]))
     topo = faces[~repeated]
-    _check_topology(rep, topo, n, used)
+    _check_topology(rep, topo, n)
 
     # Geometry, recentred so that cross products do not lose digits to a far-away origin.
     centre = vertices[used].mean(axis=0)
@@ -132,7 +132,7 @@ def check_surface(vertices, faces, *, expect_components: Optional[int] = 1,
                                np.linalg.norm(v0 - v2, axis=1)])
     mean_edge = float(edge_len.mean())
     area = 0.5 * np.linalg.norm(np.cross(v1 - v0, v2 - v0), axis=1)
-    degenerate = repeated | (area < DEGENERATE_EPS * mean_edge ** 2)
+    degenerate = repeated | (area <= DEGENERATE_EPS * mean_edge ** 2)
     rep.n_duplicate_faces = _count_duplicate_faces(topo, n)
     rep.n_degenerate = int(degenerate.sum()) + rep.n_duplicate_faces
 
@@ -143,13 +143,15 @@ def check_surface(vertices, faces, *, expect_components: Optional[int] = 1,
 
     # Problems, each saying what it means for the user.
     if rep.n_boundary_edges:
-        problems.append(f"{rep.n_boundary_edges} boundary edges (surface is not closed: it has holes)")
+        problems.append(f"{rep.n_boundary_edges} boundary edges "
+                        "(surface is not closed: it has holes)")
     if rep.n_nonmanifold_edges:
         problems.append(f"{rep.n_nonmanifold_edges} edges shared by more than 2 faces "
                         "(not edge-manifold)")
     if rep.n_nonmanifold_vertices:
-        problems.append(f"{rep.n_nonmanifold_vertices} vertices whose faces do not form a single fan "
-                        "(not vertex-manifold: parts of the surface touch at a vertex)")
+        problems.append(f"{rep.n_nonmanifold_vertices} vertices whose faces do not form a "
+                        "single fan (not vertex-manifold: parts of the surface touch at a "
+                        "vertex)")
     if rep.n_misoriented_edges:
         problems.append(f"{rep.n_misoriented_edges} edges traversed in the same direction by both "
                         "faces (inconsistent orientation: some faces are flipped)")
@@ -160,13 +162,14 @@ def check_surface(vertices, faces, *, expect_components: Optional[int] = 1,
         problems.append(f"enclosed volume {rep.volume:.3g} mm^3 is not positive "
                         "(normals point inward)")
     if degenerate.any():
-        problems.append(f"{int(degenerate.sum())} degenerate faces (zero area or a repeated vertex)")
+        problems.append(f"{int(degenerate.sum())} degenerate faces "
+                        "(zero area or a repeated vertex)")
     if rep.n_duplicate_faces:
         problems.append(f"{rep.n_duplicate_faces} duplicate faces (same three vertices twice)")
     if rep.n_self_intersections:
         involved = int(np.count_nonzero(np.bincount(pairs.ravel())))
-        problems.append(f"{rep.n_self_intersections} pairs of intersecting faces ({involved} faces; "
-                        "the surface passes through itself)")
+        problems.append(f"{rep.n_self_intersections} pairs of intersecting faces "
+                        f"({involved} faces; the surface passes through itself)")
     rep.ok = not problems
     rep.seconds = time.perf_counter() - t0
     return rep
@@ -202,7 +205,7 @@ def _count_duplicate_faces(faces: np.ndarray, n: int) -> int:
     return int(len(faces) - len(np.unique(np.stack([a, b, c], axis=1), axis=0)))
 
 
-def _check_topology(rep: SurfaceReport, faces: np.ndarray, n: int, used: np.ndarray) -> None:
+def _check_topology(rep: SurfaceReport, faces: np.ndarray, n: int) -> None:
     m = len(faces)
     if m == 0:
         return
@@ -226,9 +229,10 @@ def _check_topology(rep: SurfaceReport, faces: np.ndarray, n: int, used: np.ndar
     rep.closed = rep.n_boundary_edges == 0
     rep.edge_manifold = rep.n_boundary_edges == 0 and rep.n_nonmanifold_edges == 0
 
-    # Orientation: two half-edges of one edge in the same direction mean two faces disagree.
+    # Orientation: the two half-edges of a manifold edge must run in opposite directions
+    # (on edges with more than two faces orientation is undefined; they are reported anyway).
     forward = np.bincount(group, weights=(start == lo)[order], minlength=n_edges)
-    rep.n_misoriented_edges = int(((forward > 1) | (counts - forward > 1)).sum())
+    rep.n_misoriented_edges = int(((counts == 2) & (forward != 1)).sum())
     rep.consistent_orientation = rep.n_misoriented_edges == 0
 
     # Vertex fans: link the corners of one vertex in faces that share an edge through it;
@@ -287,8 +291,10 @@ def find_self_intersections(vertices, faces, max_pairs: Optional[int] = None,
     # Visit faces in spatial order (coarse grid of centroids) so that the gathers of the
     # pair tests below hit memory that is close together.
     centroid = v[f].mean(axis=1)
-    step = 8.0 * max(float(np.linalg.norm(v[f[:, 1]] - v[f[:, 0]], axis=1).mean()), 1e-300)
-    q = np.floor((centroid - centroid.min(axis=0)) / step).astype(np.int64)
+    spread = centroid - centroid.min(axis=0)
+    step = max(8.0 * float(np.linalg.norm(v[f[:, 1]] - v[f[:, 0]], axis=1).mean()),
+               float(spread.max()) / 1e6, 1e-300)
+    q = np.floor(spread / step).astype(np.int64)
     qd = q.max(axis=0) + 1
     spatial = np.argsort((q[:, 0] * qd[1] + q[:, 1]) * qd[2] + q[:, 2])
     face_ids = face_ids[spatial]
@@ -312,7 +318,7 @@ def find_self_intersections(vertices, faces, max_pairs: Optional[int] = None,
         "normal": [np.ascontiguousarray(unit[:, k]) for k in range(3)],
         "offset": np.einsum("ij,ij->i", unit, tri[:, 0]),
         "nlen": nlen,
-        "tri": tri, "unit": unit, "dtol": dtol,
+        "tri": tri, "tri_flat": tri.reshape(-1, 3), "unit": unit, "dtol": dtol,
         "size": float((hi - lo).max()),
     }
     found = []
@@ -430,7 +436,8 @@ def _narrow_phase(ctx, i, j):
     neg_p = (dP[0] < -dtol) | (dP[1] < -dtol) | (dP[2] < -dtol)
     straddle_q = pos_q & neg_q
     straddle_p = pos_p & neg_p
-    flat = ~(pos_q | neg_q) | ~(pos_p | neg_p)
+    flat_q = ~(pos_q | neg_q)  # j lies in the plane of i
+    flat = flat_q | ~(pos_p | neg_p)
     hit = np.zeros(len(i), dtype=bool)
 
     # Transversal crossings (at most one shared vertex, not coplanar): the intersection
@@ -451,20 +458,13 @@ def _narrow_phase(ctx, i, j):
         hit[cross] = h
 
     tri, unit = ctx["tri"], ctx["unit"]
-    # Coplanar pairs without a common vertex: overlap of positive area.
-    sel = np.flatnonzero(flat & (n_shared == 0))
+    # Coplanar pairs with at most one common vertex: overlap of positive area.
+    sel = np.flatnonzero(flat & (n_shared <= 1))
     if len(sel):
         ii, jj = i[sel], j[sel]
-        hit[sel] = _coplanar_overlap(tri[ii], tri[jj], unit[ii], dtol)
-
-    # Coplanar pairs sharing a vertex: overlapping angular sectors at that vertex.
-    sel = np.flatnonzero(flat & (n_shared == 1))
-    if len(sel):
-        ii, jj = i[sel], j[sel]
-        eq = _corner_matches(fi, fj, sel)
-        P = _rotate(tri[ii], eq.any(axis=2).argmax(axis=1))
-        Q = _rotate(tri[jj], eq.any(axis=1).argmax(axis=1))
-        hit[sel] = _sectors_overlap(P, Q, unit[ii])
+        # Work in the plane the other face lies in (matters when one face is tiny).
+        plane = np.where(flat_q[sel][:, None], unit[ii], unit[jj])
+        hit[sel] = _coplanar_overlap(tri[ii], tri[jj], plane, dtol)
 
     # Pairs sharing an edge: folded onto each other? The far corner must lie (almost) in the
     # other face's plane, within _ANGLE_TOL * size.
@@ -472,20 +472,18 @@ def _narrow_phase(ctx, i, j):
     near_q = np.maximum(np.maximum(np.abs(dQ[0]), np.abs(dQ[1])), np.abs(dQ[2])) <= fold_tol
     sel = np.flatnonzero((n_shared == 2) & near_q)
     if len(sel):
-        ii, jj = i[sel], j[sel]
-        eq = _corner_matches(fi, fj, sel)
-        # Rotate so that the unshared vertex comes last: (a, b, c) and (a', b', d).
-        P = _rotate(tri[ii], ((~eq.any(axis=2)).argmax(axis=1) + 1) % 3)
-        Q = _rotate(tri[jj], ((~eq.any(axis=1)).argmax(axis=1) + 1) % 3)
-        hit[sel] = _edge_sharing_pairs(P, Q, unit[ii], dtol)
+        fi_s = [x[sel] for x in fi]
+        fj_s = [x[sel] for x in fj]
+        # The unshared corner of each face: the one equal to none of the other's corners.
+        cut_i = np.zeros(len(sel), dtype=np.int64)
+        cut_j = np.zeros(len(sel), dtype=np.int64)
+        for a in range(3):
+            cut_i[(fi_s[a] != fj_s[0]) & (fi_s[a] != fj_s[1]) & (fi_s[a] != fj_s[2])] = a
+            cut_j[(fj_s[a] != fi_s[0]) & (fj_s[a] != fi_s[1]) & (fj_s[a] != fi_s[2])] = a
+        hit[sel] = _edge_sharing_pairs(ctx["tri_flat"], i[sel], j[sel], cut_i, cut_j,
+                                       unit[i[sel]], dtol)
     # Three shared vertices: a duplicate face, counted with the degenerate faces.
     return hit
-
-
-def _corner_matches(fi, fj, sel):
-    """eq[p, a, b]: corner a of the first face of pair p is corner b of the second."""
-    return np.stack([np.stack([fi[a][sel] == fj[b][sel] for b in range(3)], axis=1)
-                     for a in range(3)], axis=1)
 
 
 def _edge_crosses_face(ctx, f_edge, a, b, da, db, f_tri, todo):
@@ -517,85 +515,40 @@ def _edge_crosses_face(ctx, f_edge, a, b, da, db, f_tri, todo):
     return out
 
 
-def _rotate(T, r):
-    idx = (r[:, None] + np.arange(3)[None, :]) % 3
-    return np.take_along_axis(T, idx[:, :, None], axis=1)
-
-
-def _sign(d, tol):
-    return (d > tol).astype(np.int8) - (d < -tol).astype(np.int8)
-
-
-def _project_2d(P, Q, n):
-    """Drop the dominant axis of the normal n: 2-D coordinates of both triangles."""
-    axis = np.abs(n).argmax(axis=1)
-    keep = np.array([[1, 2], [2, 0], [0, 1]])[axis]  # keeps (x, y) orientation for +n
-    P2 = np.take_along_axis(P, keep[:, None, :], axis=2)
-    Q2 = np.take_along_axis(Q, keep[:, None, :], axis=2)
-    return P2, Q2
-
-
-def _cross2(a, b):
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-
-
-def _side(a, b, p, tol):
-    """Signed distance of p from the 2-D line a->b, thresholded to -1/0/+1."""
-    d = b - a
-    length = np.maximum(np.hypot(d[..., 0], d[..., 1]), 1e-300)
-    return _sign(_cross2(d, p - a) / length, tol)
-
-
-def _strictly_inside(T, p, tol):
-    s0 = _side(T[:, 0], T[:, 1], p, tol)
-    s1 = _side(T[:, 1], T[:, 2], p, tol)
-    s2 = _side(T[:, 2], T[:, 0], p, tol)
-    return ((s0 > 0) & (s1 > 0) & (s2 > 0)) | ((s0 < 0) & (s1 < 0) & (s2 < 0))
-
-
 def _coplanar_overlap(P, Q, n, dtol):
-    """Positive-area overlap of coplanar triangles without a common vertex."""
-    P2, Q2 = _project_2d(P, Q, n)
-    hit = _strictly_inside(Q2, P2.mean(axis=1), dtol) | _strictly_inside(P2, Q2.mean(axis=1), dtol)
-    for a in range(3):
-        hit |= _strictly_inside(Q2, P2[:, a], dtol) | _strictly_inside(P2, Q2[:, a], dtol)
-        pa, pb = P2[:, a], P2[:, (a + 1) % 3]
-        for b in range(3):
-            qa, qb = Q2[:, b], Q2[:, (b + 1) % 3]
-            hit |= ((_side(pa, pb, qa, dtol) * _side(pa, pb, qb, dtol) < 0)
-                    & (_side(qa, qb, pa, dtol) * _side(qa, qb, pb, dtol) < 0))
-    return hit
+    """Positive-area overlap of coplanar triangles (separating-axis test in their plane).
 
-
-def _sectors_overlap(P, Q, n):
-    """Coplanar P = (v, a, b), Q = (v, c, d): do their angular sectors at v overlap?
-
-    Both sectors are convex, so they overlap exactly when a side of one lies strictly inside
-    the other, or when the two coincide.
+    Two convex polygons have disjoint interiors exactly when the line through one of their
+    edges separates them; "touching" (within dtol of the line) counts as separated, which also
+    makes two faces side by side around a shared vertex separated.
     """
-    P2, Q2 = _project_2d(P, Q, n)
-    dirs = np.concatenate([P2[:, 1:], Q2[:, 1:]], axis=1) - P2[:, :1]
-    dirs /= np.maximum(np.linalg.norm(dirs, axis=2, keepdims=True), 1e-300)
-    p, q, r, s = dirs[:, 0], dirs[:, 1], dirs[:, 2], dirs[:, 3]
+    alive = np.arange(len(P))  # pairs not yet separated; most go at the first edges
+    for first in (True, False):
+        for a in range(3):
+            A, B = (P[alive], Q[alive]) if first else (Q[alive], P[alive])
+            p = A[:, a]
+            m = np.cross(n[alive], A[:, (a + 1) % 3] - p)  # in-plane normal of the edge
+            m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-300)
+            m *= np.sign(np.einsum("ij,ij->i", m, A[:, (a + 2) % 3] - p))[:, None]
+            separated = np.einsum("kij,kj->ki", B - p[:, None], m).max(axis=1) <= dtol
+            alive = alive[~separated]
+    out = np.zeros(len(P), dtype=bool)
+    out[alive] = True
+    return out
 
-    def inside(u, a, b):
-        sg = np.sign(_cross2(a, b))
-        return (_cross2(a, u) * sg > _ANGLE_TOL) & (_cross2(u, b) * sg > _ANGLE_TOL)
 
-    def same(a, b):
-        return (np.abs(_cross2(a, b)) <= _ANGLE_TOL) & ((a * b).sum(axis=1) > 0)
+def _edge_sharing_pairs(tri_flat, ii, jj, cut_i, cut_j, nP, dtol):
+    """Faces ii = (a, b, c) and jj = (b, a, d) sharing edge ab: folded onto each other?
 
-    return (inside(r, p, q) | inside(s, p, q) | inside(p, r, s) | inside(q, r, s)
-            | (same(p, r) & same(q, s)) | (same(p, s) & same(q, r)))
-
-
-def _edge_sharing_pairs(P, Q, nP, dtol):
-    """P = (a, b, c), Q = (a, b, d) or (b, a, d): folded onto each other across edge ab?"""
-    a, b, c, d = P[:, 0], P[:, 1], P[:, 2], Q[:, 2]
-    e = b - a
-    perp = np.cross(nP, e)
+    ``cut_i``, ``cut_j``: index of the unshared corner (c, d) in each face.
+    """
+    c = tri_flat[3 * ii + cut_i]
+    a = tri_flat[3 * ii + (cut_i + 1) % 3]
+    b = tri_flat[3 * ii + (cut_i + 2) % 3]
+    d = tri_flat[3 * jj + cut_j]
+    perp = np.cross(nP, b - a)
     perp /= np.maximum(np.linalg.norm(perp, axis=1, keepdims=True), 1e-300)
     side_c = np.sign(np.einsum("ij,ij->i", c - a, perp))
     w = np.einsum("ij,ij->i", d - a, perp) * side_c  # > 0: d on c's side of the edge
-    h = np.abs(np.einsum("ij,ij->i", d - a, nP))    # height of d over P's plane
+    h = np.abs(np.einsum("ij,ij->i", d - a, nP))    # height of d over the plane of ii
     return (w > dtol) & (h <= np.maximum(dtol, _ANGLE_TOL * w))

@@ -40,7 +40,7 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_cont
     deformation) followed by the local back-off, so the result never folds or self-intersects."""
     n = vertex_normals(vertices, faces)
     step = 0.1
-    t = np.arange(-2.5, 2.5 + 1e-9, step)
+    t = np.arange(-3.5, 2.5 + 1e-9, step)
     pts = vertices[:, None, :] + t[None, :, None] * n[:, None, :]
     prof = sample_field(ct_smooth, pts.reshape(-1, 3), spacing, order=1, cval=-1000.0).reshape(len(vertices), len(t))
     inner = t <= 0.5
@@ -65,8 +65,14 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_cont
     ok = has & np.isfinite(valley) & (peak - valley >= min_contrast) & (peak >= ht)
     shift = np.where(ok, np.clip(t_cross, -max_shift, max_shift), 0.0)
     w = ok.astype(np.float64)
-    targets = vertices + shift[:, None] * n
     L = laplacian(len(vertices), faces)
+    # A vertex whose edge disagrees with its neighbours' (noise, a pore at the surface, a
+    # grazing profile) gets no target: the Laplacian term carries it with its neighbours.
+    avg = sp.identity(len(vertices), format="csr") - L
+    cnt = avg @ w
+    nb_shift = np.where(cnt > 0, (avg @ (w * shift)) / np.maximum(cnt, 1e-12), 0.0)
+    w[np.abs(shift - nb_shift) > max(0.4, 0.8 * spacing)] = 0.0
+    targets = vertices + shift[:, None] * n
     LtL = (L.T @ L).tocsr()
     A = (alpha * LtL + sp.diags(w + beta)).tocsr()
     rhs = w[:, None] * targets + alpha * (LtL @ vertices) + beta * vertices

@@ -112,37 +112,59 @@ def two_step_threshold(ct_f: np.ndarray, segment: np.ndarray, spacing: float,
     if progress:
         progress(0.1, "thresholds")
 
+    # Near the segment itself (no closing): a neighbour lies mostly outside this, while bone k's
+    # parts that the rough segment missed still lie inside the closed region ``roi``.
+    seg_near = ndimage.binary_dilation(segment, structure=SIX,
+                                       iterations=max(1, int(round(1.5 / spacing))))
     eroded = w0
-    separated_at = None
     stats = []
-    lab = None
+    levels = []
+    prev_lab = None
+    prev_main = None
+    separated_at = 0
     for e in range(0, params.max_erosions + 1):
         if e > 0:
             eroded = ndimage.binary_erosion(eroded, structure=SIX)
         lab, n, size, inroi = _components(eroded, roi)
-        if n == 0 or inroi.max() == 0:
+        near = np.bincount(lab[seg_near], minlength=n + 1)
+        near[0] = 0
+        if n == 0 or near.max() == 0:
             break
-        main = int(np.argmax(inroi))
+        main = int(np.argmax(near))
         frac = inroi[main] / size[main]
-        stats.append({"erosions": e, "components": int(n), "main_voxels": int(size[main]),
-                      "main_fraction_in_region": float(frac)})
-        # Spilling out of the segment's region by less than 15 % is bone k's own surface near
-        # a rough segment border, not a neighbour.
-        if frac >= 0.85:
+        # Pieces that were part of the previous level's main component and broke off now: a
+        # piece of neighbour if it is large and barely touches the segment.
+        split = []
+        if prev_lab is not None:
+            from_main = np.bincount(lab[prev_lab == prev_main], minlength=n + 1)
+            for c in np.flatnonzero(from_main[1:]) + 1:
+                if c != main and size[c] >= 0.03 * size[main] and near[c] < 0.2 * size[c] \
+                        and inroi[c] < 0.9 * size[c]:
+                    split.append(int(c))
+        if split:
             separated_at = e
-            break
+        stats.append({"erosions": e, "components": int(n), "main_voxels": int(size[main]),
+                      "main_fraction_in_region": float(frac), "neighbours_split_off": len(split)})
+        levels.append((lab, n, size, inroi, near, main, frac))
+        prev_lab, prev_main = lab, main
         if progress:
-            progress(0.1 + 0.3 * (e + 1) / (params.max_erosions + 1), f"erosion {e + 1}")
-    if separated_at is None:
-        last = stats[-1]["main_fraction_in_region"] if stats else 0.0
+            progress(0.1 + 0.3 * (e + 1) / (params.max_erosions + 1), f"erosion {e}")
+    if not levels:
+        raise ThresholdError("Nothing of the bone under the segment survives the first erosion: "
+                             "lower H0 or max_erosions.")
+    separated_at = min(separated_at, len(levels) - 1)
+    lab, n, size, inroi, near, main, frac = levels[separated_at]
+    if frac < 0.5:
         raise SeparationError(
             f"After {params.max_erosions} erosions the bone under the segment is still joined to a "
-            f"neighbour ({100 * (1 - last):.0f} % of it lies outside the segment's region). Try: raise H0 "
+            f"neighbour ({100 * (1 - frac):.0f} % of it lies outside the segment's region). Try: raise H0 "
             f"(now {params.h0:g} HU), raise max_erosions (now {params.max_erosions}), use a finer resample "
             "spacing, or draw the rough segment over more of the bone.")
-    bone_lab = np.flatnonzero((inroi >= 0.5 * size) & (inroi >= 0.02 * inroi[main]) & (size > 0))
+    bone_lab = np.flatnonzero((near >= 0.2 * size) & (inroi >= 0.5 * size)
+                              & (near >= 0.02 * near[main]) & (size > 0))
     is_bone = np.zeros(len(size), dtype=bool)
     is_bone[bone_lab] = True
+    is_bone[main] = True
     bone_seed = is_bone[lab]
     other_seed = (lab > 0) & ~bone_seed
     if progress:

@@ -203,7 +203,8 @@ class _Model:
         shell = np.abs(rr - (self.cup_r_in + 0.5 * self.cup_t)) - 0.5 * self.cup_t
         # Keep the part beyond a plane 0.2 R past the centre (the cup's rim).
         half = -(q @ self.cup_axis) - 0.2 * self.cup_r_in
-        cup = np.maximum(shell, half)
+        # Smooth maximum: a rounded rim (a sharp crease would fold the projected truth mesh).
+        cup = -_smin(-shell, -half, 0.4 * self.cup_t)
         return _smin(cup, _sphere(p, *self.pelvis_blob), max(2.0 * self.s, 0.6))
 
     def cortex_thickness(self, p):
@@ -417,13 +418,16 @@ def _form_ct(model, cfg, rng, shape, spacing):
 
 # ---------------------------------------------------------------------------- truth meshes
 
-def _sdf_mesh(sdf, lo, hi, h):
+def _sdf_mesh(sdf, lo, hi, h, newton=4):
     """Watertight mesh of sdf's zero set: flying edges on a grid of step h, then Newton
     projection of the vertices onto the zero set."""
     import vtk
     from vtk.util import numpy_support as ns
 
-    lo = np.asarray(lo, float) - 2 * h
+    # An odd offset keeps grid nodes off the primitives' round-number radii and centres, and
+    # node values too close to zero are pushed outward: flying edges would otherwise emit
+    # coincident vertices (zero-area triangles) at nodes lying on the surface.
+    lo = np.asarray(lo, float) - 2 * h - np.array([0.1234567, 0.2345678, 0.3456789]) * h
     hi = np.asarray(hi, float) + 2 * h
     n = np.ceil((hi - lo) / h).astype(int) + 1
     xs, ys, zs = (lo[k] + h * np.arange(n[k]) for k in range(3))
@@ -432,6 +436,8 @@ def _sdf_mesh(sdf, lo, hi, h):
     for k in range(0, n[2], step):
         Z, Y, X = np.meshgrid(zs[k:k + step], ys, xs, indexing="ij")
         vol[k:k + step] = sdf(np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])).reshape(X.shape)
+    tiny = np.float32(1e-3 * h)
+    vol[np.abs(vol) < tiny] = tiny
     vol[[0, -1]] = 1.0
     vol[:, [0, -1]] = 1.0
     vol[:, :, [0, -1]] = 1.0
@@ -452,7 +458,7 @@ def _sdf_mesh(sdf, lo, hi, h):
     v = ns.vtk_to_numpy(out.GetPoints().GetData()).astype(np.float64)
     f = ns.vtk_to_numpy(out.GetPolys().GetConnectivityArray()).astype(np.int64).reshape(-1, 3)
     eps = 1e-4 * h
-    for _ in range(4):
+    for _ in range(newton):
         d = sdf(v)
         g = np.column_stack([(sdf(v + e) - sdf(v - e)) / (2 * eps) for e in np.eye(3) * eps])
         gn2 = np.maximum((g * g).sum(axis=1), 1e-12)

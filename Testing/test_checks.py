@@ -111,6 +111,7 @@ def test_hole_is_not_closed():
     r = check_surface(v, f[1:])
     assert not r.ok and not r.closed and not r.edge_manifold
     assert r.n_boundary_edges == 3 and r.genus is None
+    assert r.vertex_manifold and r.consistent_orientation  # a clean hole, nothing else
     assert any("boundary edges" in p for p in r.problems)
 
 
@@ -176,16 +177,15 @@ def test_edge_with_three_faces_is_not_edge_manifold():
 
 
 def test_two_tetrahedra_sharing_an_edge():
+    # The second is the first turned 180 degrees about the x axis: both hold edge 0-1.
     v1, f1 = tetrahedron()
-    v2, f2 = tetrahedron(offset=(1, 0, 0), scale=-1.0)  # mirrored: shares edge 0-1 with v1
-    v2 = v2 * [1, -1, 1] + [0, 0, 0]
-    idx = np.array([1, 0, -1, -2])  # second tetra: (1,0,0) -> 1, (0,0,0) -> 0, two new
+    v2 = v1 * [1, -1, -1]
     v = np.vstack([v1, v2[2:]])
-    f2 = f2[:, ::-1]  # mirroring flips orientation; restore outward faces
-    f2 = np.where(idx[f2] >= 0, idx[f2], 4 + (-idx[f2] - 1))
+    f2 = np.where(f1 >= 2, f1 + 2, f1)
     r = check_surface(v, np.vstack([f1, f2]))
     assert r.closed and not r.edge_manifold and r.n_nonmanifold_edges == 1
-    assert not r.ok
+    assert r.consistent_orientation and r.outward and r.n_self_intersections == 0
+    assert not r.ok and r.genus is None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -221,6 +221,8 @@ def test_vertex_pushed_through_sphere_self_intersects():
     assert len(pairs) == r.n_self_intersections
     assert all(a in moved or b in moved for a, b in pairs.tolist())
     assert any("intersecting faces" in p for p in r.problems)
+    r = check_surface(v, f, check_self_intersections=False)
+    assert r.ok and r.n_self_intersections == 0  # skipped on request
 
 
 def test_interpenetrating_spheres_self_intersect():
@@ -404,3 +406,48 @@ def test_large_sphere_is_fast():
     print(f"check_surface on {len(f)} faces: {seconds:.2f} s CPU ({r.seconds:.2f} s wall)")
     assert r.ok, r.problems
     assert seconds < 5.0
+
+
+def _clip_area(P, Q):
+    """Area of the intersection of two 2-D triangles (Sutherland-Hodgman clipping)."""
+    def signed(poly):
+        x, y = np.asarray(poly).T
+        return 0.5 * (x @ np.roll(y, -1) - y @ np.roll(x, -1))
+
+    poly = [tuple(p) for p in P]
+    q = [tuple(p) for p in Q]
+    if signed(q) < 0:
+        q = q[::-1]
+    for k in range(3):
+        a, b = np.array(q[k]), np.array(q[(k + 1) % 3])
+        side = [((b - a)[0] * (p[1] - a[1]) - (b - a)[1] * (p[0] - a[0])) for p in poly]
+        out = []
+        for m in range(len(poly)):
+            p1, p2, s1, s2 = poly[m], poly[(m + 1) % len(poly)], side[m], side[(m + 1) % len(poly)]
+            if s1 >= 0:
+                out.append(p1)
+            if s1 * s2 < 0:
+                t = s1 / (s1 - s2)
+                out.append(tuple(np.array(p1) + t * (np.array(p2) - np.array(p1))))
+        poly = out
+        if len(poly) < 3:
+            return 0.0
+    return abs(signed(poly))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_coplanar_soup_matches_polygon_clipping(seed):
+    # Triangles on a small integer grid in one plane: many shared vertices, shared edges,
+    # touching edges and true overlaps. Rotated and moved so that nothing is exact any more.
+    rng = np.random.default_rng(seed)
+    grid = np.array([(x, y) for x in range(4) for y in range(4)], float)
+    triples = np.array([t for t in itertools.combinations(range(len(grid)), 3)
+                        if _clip_area(grid[list(t)], grid[list(t)]) > 0])  # not collinear
+    f = triples[rng.choice(len(triples), 25, replace=False)]
+    rot, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    v = np.c_[grid, np.zeros(len(grid))] @ rot.T * 3.7 + [-80.0, 140.0, 260.0]
+    mine = pair_set(find_self_intersections(v, f))
+    ref = {(i, j) for i, j in itertools.combinations(range(len(f)), 2)
+           if _clip_area(grid[f[i]], grid[f[j]]) > 1e-9}
+    assert mine == ref
+    assert 0 < len(ref) < len(f) * (len(f) - 1) // 2

@@ -14,10 +14,13 @@ def tiny():
     return make_phantom("tiny", seed=0)
 
 
+# Finer, noise-free variant with a wide gap, so HU can be read at known places.
+CLEAN = dict(noise=0.0, pixel=0.6, slice_spacing=0.6, gap=3.0, scale=0.3, truth_grid=0.4)
+
+
 @pytest.fixture(scope="module")
 def clean():
-    # Finer, noise-free variant with a wide gap, so HU can be read at known places.
-    return make_phantom("tiny", seed=0, noise=0.0, pixel=0.5, slice_spacing=0.5, gap=3.0, scale=0.3)
+    return make_phantom("tiny", seed=0, **CLEAN)
 
 
 def _hu_at(img, physical_points):
@@ -35,8 +38,8 @@ def test_cases_listed():
 
 def test_truth_watertight(tiny):
     for surf in (tiny.truth, tiny.neighbour_truth):
-        rep = check_surface(surf.vertices, surf.faces, check_self_intersections=False)
-        assert rep.closed and rep.edge_manifold and rep.n_components == 1, rep.problems
+        rep = check_surface(surf.vertices, surf.faces)
+        assert rep.ok and rep.genus == 0, rep.problems
         assert rep.volume > 0
 
 
@@ -67,7 +70,10 @@ def test_hu_in_the_right_places(clean):
     marrow = to_phys(np.array([[0, 0, 0], [0, 0, 2.0]]))
     gap_pt = to_phys((m.head_c + m.cup_axis * (m.head_r + 0.5 * clean.info["gap"]))[None])
     lo, hi = m.bone_bbox()
-    soft = to_phys(np.array([[hi[0] + 2.5, 0.0, 0.0]]))
+    cx, cy, ax, ay = m.body
+    depth = m.fat_mm + 1.2  # in the muscle layer, clear of the fat and of the bone
+    soft = to_phys(np.array([[cx + ax * (1 - depth / min(ax, ay)), cy, 0.0]]))
+    assert soft is not None and m.bone_sdf(m.to_local(soft))[0] > 3.0
     ct = clean.ct
     assert (_hu_at(ct, cortex) > 800).all()
     assert (np.abs(_hu_at(ct, marrow) - 50) < 60).all()
@@ -88,7 +94,14 @@ def test_mask_is_rough_but_on_the_bone(tiny):
     model = tiny.info["_model"]
     d_bone = tiny.bone_sdf(pts)
     d_cup = model.cup_sdf(model.to_local(pts))
-    assert (d_bone < 0.5).mean() > 0.8   # mostly on the bone (islands and wobble allowed)
+    assert (d_bone < 0.5).mean() > 0.6   # mostly on the bone (islands and wobble allowed)
+    # The largest piece is the bone (the islands are elsewhere).
+    from scipy import ndimage
+    lab, n = ndimage.label(arr)
+    assert n >= 2
+    sizes = np.bincount(lab[arr > 0])
+    big = lab[tuple(idx[:, ::-1].T)] == np.argmax(sizes)
+    assert (d_bone[big] < 0.5).mean() > 0.95
     assert (d_cup > 0).all()              # never on the neighbour
     # Missing slab: some z range inside the shaft has no mask voxel.
     assert arr.any(axis=(1, 2)).sum() < arr.shape[0]
@@ -120,9 +133,9 @@ def test_seed_reproducible(tiny):
     assert not np.array_equal(sitk.GetArrayViewFromImage(other.ct), sitk.GetArrayViewFromImage(tiny.ct))
 
 
-def test_lesion_breaks_the_cortex():
-    base = make_phantom("tiny", seed=0, noise=0.0, scale=0.3, pixel=0.5, slice_spacing=0.5)
-    les = make_phantom("tiny", seed=0, noise=0.0, scale=0.3, pixel=0.5, slice_spacing=0.5, lesion=True)
+def test_lesion_breaks_the_cortex(clean):
+    base = clean
+    les = make_phantom("tiny", seed=0, lesion=True, **CLEAN)
     m = les.info["_model"]
     c, r_l = m.lesion
     pt = m.to_physical(np.array([[0.0, m.shaft[2] - 0.5 * m.t_shaft, c[2]]]))
