@@ -51,15 +51,19 @@ def sample_field(field_zyx: np.ndarray, points_grid_mm: np.ndarray, spacing: flo
     return ndimage.map_coordinates(field_zyx, coords, order=order, mode="constant", cval=cval)
 
 
-def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int = 8):
-    """Local back-off: vertices of triangles that a step would flip or make intersect keep their
-    old position. ``old`` must be free of both. Returns (vertices, ok, number of bad faces)."""
+def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int = 8,
+                intersections: bool = True):
+    """Local back-off: vertices of triangles that a step would flip (or, with ``intersections``,
+    make intersect) keep their old position. ``old`` must be free of both.
+    Returns (vertices, ok, number of bad faces)."""
     new = new.copy()
     fn_before = face_normals(old, faces)
     bad_faces = 0
     for _ in range(rounds):
         bad = np.einsum("ij,ij->i", fn_before, face_normals(new, faces)) < 0.0
         if not bad.any():
+            if not intersections:
+                return new, True, 0
             pairs = find_self_intersections(new, faces)
             if len(pairs) == 0:
                 return new, True, 0
@@ -122,7 +126,7 @@ class Deformer:
         A = (alpha * self.LtL + sp.diags(diag_extra + beta)).tocsr()
         return solve_spd(A, rhs, x0)
 
-    def step(self, j, total, alpha, beta):
+    def step(self, j, total, alpha, beta, full_check=True):
         v = self.v
         normals = vertex_normals(v, self.f)
         psi, matched, inside = self.match(v, normals)
@@ -134,7 +138,13 @@ class Deformer:
         diag_extra = w + alpha * w
         for attempt in range(3):
             new = self.solve(rhs, diag_extra, alpha, beta, v)
-            new, ok, bad = safe_update(v, new, self.f)
+            new, ok, bad = safe_update(v, new, self.f, intersections=False)
+            if ok and full_check:
+                # The exact self-intersection test costs ~1 s per 150k faces, so it runs every
+                # few iterations against the last verified iterate (see run()).
+                new, ok, bad = safe_update(self.clean_v, new, self.f)
+                if ok:
+                    self.clean_v = new
             if ok:
                 return new, matched, 0
             # Global back-off: a stiffer step (more weight on the previous iterate).
@@ -146,10 +156,13 @@ class Deformer:
         p = self.p
         alpha, beta = p.alpha, p.beta
         total = p.iterations
+        self.clean_v = self.v.copy()
         extra = 0
         j = 1
         while j <= total + extra:
-            new, matched, flipped = self.step(min(j, total), total, alpha, beta)
+            last = j >= total + extra
+            new, matched, flipped = self.step(min(j, total), total, alpha, beta,
+                                              full_check=last or j % 3 == 0)
             if new is None:
                 self.history.append({"iteration": j, "rejected": True, "flipped": flipped})
                 break
@@ -169,4 +182,8 @@ class Deformer:
             if j == total + extra and move.mean() > 0.05 * self.d and extra < 4:
                 extra += 1
             j += 1
+        if not np.array_equal(self.clean_v, self.v):
+            self.v, ok, _ = safe_update(self.clean_v, self.v, self.f)
+            if not ok:
+                self.v = self.clean_v
         return self.v

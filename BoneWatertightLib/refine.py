@@ -24,16 +24,21 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_
     their neighbours have moved). Returns (vertices, total shift, fraction refined, ok)."""
     v = vertices
     frac = 0.0
-    for _ in range(passes):
-        v, _, frac, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast, alpha, beta)
+    L = laplacian(len(vertices), faces)
+    for k in range(passes):
+        v, _, frac, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
+                                     alpha, beta, L=L)
         if not ok:
             break
+    # Passes check only for flips; the exact self-intersection test runs once, against the
+    # verified input surface.
+    v, ok, _ = safe_update(vertices, v, faces)
     n = vertex_normals(vertices, faces)
     return v, np.einsum("ij,ij->i", v - vertices, n), frac, ok
 
 
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_contrast=150.0,
-                alpha=0.3, beta=0.05):
+                alpha=0.3, beta=0.05, L=None):
     """Return (new vertices, per-vertex shift along the normal, fraction refined, ok).
 
     The half-maximum points are soft targets of one regularised Laplacian step (as in the
@@ -65,7 +70,8 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_cont
     ok = has & np.isfinite(valley) & (peak - valley >= min_contrast) & (peak >= ht)
     shift = np.where(ok, np.clip(t_cross, -max_shift, max_shift), 0.0)
     w = ok.astype(np.float64)
-    L = laplacian(len(vertices), faces)
+    if L is None:
+        L = laplacian(len(vertices), faces)
     # A vertex whose edge disagrees with its neighbours' (noise, a pore at the surface, a
     # grazing profile) gets no target: the Laplacian term carries it with its neighbours.
     avg = sp.identity(len(vertices), format="csr") - L
@@ -77,6 +83,6 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_cont
     A = (alpha * LtL + sp.diags(w + beta)).tocsr()
     rhs = w[:, None] * targets + alpha * (LtL @ vertices) + beta * vertices
     new = solve_spd(A, rhs, vertices)
-    new, safe, _ = safe_update(vertices, new, faces)
+    new, safe, _ = safe_update(vertices, new, faces, intersections=False)
     moved = np.einsum("ij,ij->i", new - vertices, n)
     return new, moved, float(ok.mean()), safe

@@ -134,14 +134,15 @@ def _resolve_scalars(surface: Surface, scalars) -> Optional[np.ndarray]:
     return values
 
 
-def shade_faces(vertices: np.ndarray, faces: np.ndarray, look: np.ndarray,
+def shade_faces(vertices: np.ndarray, faces: np.ndarray, look: np.ndarray, up: np.ndarray,
                 face_values: Optional[np.ndarray] = None, cmap=None, norm=None,
                 max_faces: int = MAX_DRAWN_FACES, seed: int = 0):
     """Polygons (k, 3, 3) in view order (far to near) and their RGB colours (k, 3).
 
-    Flat Lambert shading: light from behind the viewer's left shoulder, so creases read in
-    relief; back faces of a closed, outward-oriented surface are hidden by the front ones
-    and are culled. The painter's algorithm (sort by depth) replaces a z-buffer.
+    ``look``/``up``: unit camera direction and screen-up. Flat Lambert shading with the light
+    from behind the viewer's upper left, so creases read in relief; back faces of a closed,
+    outward-oriented surface are hidden by the front ones and are culled. The painter's
+    algorithm (sort by depth) replaces a z-buffer.
     """
     tri = vertices[faces]
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -156,9 +157,8 @@ def shade_faces(vertices: np.ndarray, faces: np.ndarray, look: np.ndarray,
     order = np.argsort(-depth, kind="stable")  # farthest first
     tri, normal, keep = tri[order], normal[order], keep[order]
 
-    up = np.array([0.0, 0.0, 1.0]) if abs(look[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    side = np.cross(look, up)
-    light = -look + 0.45 * up / np.linalg.norm(up) - 0.35 * side / max(np.linalg.norm(side), 1e-12)
+    right = np.cross(look, up)
+    light = -look + 0.45 * up - 0.35 * right
     light = light / np.linalg.norm(light)
     lambert = np.clip(normal @ light, 0.0, 1.0)
     intensity = 0.28 + 0.72 * lambert
@@ -175,8 +175,8 @@ def _draw_mesh_view(ax, surface: Surface, view, values, cmap, norm, max_faces):
 
     look, up, right = _camera(view)
     face_values = None if values is None else values[surface.faces].mean(axis=1)
-    tri, colors = shade_faces(surface.vertices, surface.faces, look, face_values, cmap, norm,
-                              max_faces)
+    tri, colors = shade_faces(surface.vertices, surface.faces, look, up, face_values, cmap,
+                              norm, max_faces)
     xy = np.stack([tri @ right, tri @ up], axis=-1)
     coll = PolyCollection(xy, facecolors=colors, edgecolors="none", linewidths=0.0,
                           antialiased=False)
@@ -430,7 +430,8 @@ def render_surface(surface: Surface, path, ct=None, title: Optional[str] = None,
         values = np.where(np.isfinite(values), values, vmax)
 
     grid = fig.add_gridspec(rows, max(n_views, 3), left=0.02, right=0.9 if values is not None
-                            else 0.98, top=0.9, bottom=0.03, wspace=0.08, hspace=0.18)
+                            else 0.98, top=0.9 if rows == 2 else 0.84, bottom=0.03, wspace=0.08,
+                            hspace=0.18)
     mesh_axes = []
     for col, view in enumerate(views):
         ax = fig.add_subplot(grid[0, col])

@@ -204,32 +204,43 @@ def fig_cdf(case, samples_by_method, path):
 
 
 def fig_colored(case, surf, truth, path, vmax=1.0):
-    """Pipeline surface coloured by signed distance to the truth: front-facing vertices,
-    depth-sorted point splats, two views (anterior, medial)."""
+    """Pipeline surface coloured by signed distance to the truth: front-facing triangles
+    drawn back to front (painter's algorithm), two views along the principal axes."""
+    from matplotlib.collections import PolyCollection
     from metrics import vertex_distances
     plt = _plt()
     d = vertex_distances(surf.vertices, truth, signed=True)
-    n = surf.vertex_normals()
+    fd = d[surf.faces].mean(axis=1)
     c = surf.vertices - surf.vertices.mean(axis=0)
-    # Principal axes: the long axis vertical in the plot.
+    tri = c[surf.faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
     w, vec = np.linalg.eigh(np.cov(c.T))
-    vec = vec[:, ::-1]
-    fig, axes = plt.subplots(1, 2, figsize=(9, 7))
-    sc = None
-    for ax, (view, sgn) in zip(axes, ((1, 1), (2, -1))):
+    vec = vec[:, ::-1]  # long axis first: drawn vertical
+    fig, axes = plt.subplots(1, 2, figsize=(10, 7.5))
+    coll = None
+    for ax, (view, sgn, title) in zip(axes, ((1, 1, "view along 2nd axis"), (2, -1, "view along 3rd axis"))):
         view_dir = vec[:, view] * sgn  # towards the viewer
-        front = n @ view_dir > 0
-        depth = c @ view_dir
-        order = np.argsort(depth[front])
-        up = c @ vec[:, 0]
-        right = c @ np.cross(vec[:, 0], view_dir)
-        sc = ax.scatter(right[front][order], up[front][order], c=d[front][order], s=1.5,
-                        cmap="coolwarm", vmin=-vmax, vmax=vmax, linewidths=0)
+        shade = fn @ view_dir
+        front = shade > 0
+        up = vec[:, 0]
+        right = np.cross(up, view_dir)
+        depth = (tri[front].mean(axis=1)) @ view_dir
+        order = np.argsort(depth)
+        t2 = np.stack([tri[front] @ right, tri[front] @ up], axis=-1)[order]
+        cmap = plt.get_cmap("coolwarm")
+        rgba = cmap(np.clip((fd[front][order] + vmax) / (2 * vmax), 0, 1))
+        rgba[:, :3] *= (0.45 + 0.55 * shade[front][order])[:, None]  # simple headlight shading
+        coll = PolyCollection(t2, facecolors=rgba, edgecolors="none", antialiased=False)
+        ax.add_collection(coll)
+        ax.set_xlim(t2[..., 0].min(), t2[..., 0].max())
+        ax.set_ylim(t2[..., 1].min(), t2[..., 1].max())
         ax.set_aspect("equal")
         ax.axis("off")
-        ax.set_title("view %d" % (1 if view == 1 else 2))
-    fig.colorbar(sc, ax=axes, shrink=0.7, label="signed distance to truth (mm, + outside)")
-    fig.suptitle(f"Pipeline surface vs truth - {case}: mean |d| {np.abs(d).mean():.3f} mm")
+        ax.set_title(title)
+    sm = plt.cm.ScalarMappable(cmap="coolwarm", norm=plt.Normalize(-vmax, vmax))
+    fig.colorbar(sm, ax=axes, shrink=0.7, label="signed distance to truth (mm, + outside)")
+    fig.suptitle(f"Pipeline surface vs truth - {case}: mean |d| at vertices {np.abs(d).mean():.3f} mm")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -279,11 +290,14 @@ def fig_sections(case, ct, surfaces, truth, neighbour, path, centre_phys):
         aspect = sp[2] / sp[0] if axis == 1 else 1.0
         ax.imshow(img, cmap="gray", vmin=-300, vmax=1600, origin="lower", aspect=aspect, extent=extent,
                   interpolation="nearest")
-        entries = [("truth", truth, "lime", 2.4)]
+        entries = [("truth", truth, "lime", 3.0)]
         if neighbour is not None:
             entries.append(("neighbour truth", neighbour, "yellow", 1.2))
-        for k, (name, s) in enumerate(surfaces.items()):
-            entries.append((name, s, colors[k % len(colors)], 1.1))
+        # Baselines first, the pipeline last (on top).
+        names = sorted(surfaces, key=lambda n: (n.startswith("pipeline"), n == "pipeline"))
+        for k, name in enumerate(names):
+            entries.append((name, surfaces[name], colors[k % len(colors)],
+                            1.6 if name == "pipeline" else 1.0))
         for name, s, col, lw in entries:
             if s is None:
                 continue
