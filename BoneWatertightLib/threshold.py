@@ -128,9 +128,7 @@ def two_step_threshold(ct_f: np.ndarray, segment: np.ndarray, spacing: float,
     eroded = w0
     stats = []
     levels = []
-    prev_lab = None
-    prev_main = None
-    separated_at = 0
+    chosen = None
     for e in range(0, params.max_erosions + 1):
         if e > 0:
             eroded = ndimage.binary_erosion(eroded, structure=SIX)
@@ -141,48 +139,57 @@ def two_step_threshold(ct_f: np.ndarray, segment: np.ndarray, spacing: float,
             break
         main = int(np.argmax(near))
         frac = inroi[main] / size[main]
-        # Pieces that were part of the previous level's main component and broke off now: a
-        # piece of neighbour if it is large and barely touches the segment.
-        split = []
-        if prev_lab is not None:
-            from_main = np.bincount(lab[prev_lab == prev_main], minlength=n + 1)
-            for c in np.flatnonzero(from_main[1:]) + 1:
-                if c != main and size[c] >= 0.03 * size[main] and near[c] < 0.2 * size[c] \
-                        and inroi[c] < 0.9 * size[c]:
-                    split.append(int(c))
-        if split:
-            separated_at = e
+        # Too much erosion dissolves thin or low-density bone (3 mm CT, vertebrae): stop before
+        # the component under the segment loses most of itself.
+        if levels and size[main] < 0.2 * levels[0][2][levels[0][5]]:
+            stats.append({"erosions": e, "main_voxels": int(size[main]), "stopped": "bone dissolves"})
+            break
         stats.append({"erosions": e, "components": int(n), "main_voxels": int(size[main]),
-                      "main_fraction_in_region": float(frac), "neighbours_split_off": len(split)})
+                      "main_fraction_in_region": float(frac)})
         levels.append((lab, n, size, inroi, near, main, frac))
-        prev_lab, prev_main = lab, main
         if progress:
             progress(0.1 + 0.3 * (e + 1) / (params.max_erosions + 1), f"erosion {e}")
+        # Spilling out of the segment's region by less than 15 % is bone k's own surface near a
+        # rough segment border, not a neighbour.
+        if frac >= 0.85:
+            chosen = len(levels) - 1
+            break
     if not levels:
-        raise ThresholdError("Nothing of the bone under the segment survives the first erosion: "
-                             "lower H0 or max_erosions.")
-    separated_at = min(separated_at, len(levels) - 1)
-    lab, n, size, inroi, near, main, frac = levels[separated_at]
+        raise ThresholdError("Nothing of the bone under the segment is in [H0, theta_max]: lower H0.")
+    if chosen is None:
+        # Not separated by erosion alone: take the level that separated best. The competition
+        # below still stops at the neighbours' seeds outside the segment's region.
+        chosen = int(np.argmax([lv[6] for lv in levels]))
+    lab, n, size, inroi, near, main, frac = levels[chosen]
+    separated_at = chosen
     if frac < 0.5:
         raise SeparationError(
-            f"After {params.max_erosions} erosions the bone under the segment is still joined to a "
+            f"After {len(levels) - 1} erosions the bone under the segment is still joined to a "
             f"neighbour ({100 * (1 - frac):.0f} % of it lies outside the segment's region). Try: raise H0 "
             f"(now {params.h0:g} HU), raise max_erosions (now {params.max_erosions}), use a finer resample "
             "spacing, or draw the rough segment over more of the bone.")
-    bone_lab = np.flatnonzero((near >= 0.2 * size) & (inroi >= 0.5 * size)
-                              & (near >= 0.02 * near[main]) & (size > 0))
-    is_bone = np.zeros(len(size), dtype=bool)
-    is_bone[bone_lab] = True
+    # Bone k: every piece mostly inside the segment's region (thin bone breaks into fragments).
+    is_bone = (inroi >= 0.5 * size) & (near > 0) & (size > 0)
     is_bone[main] = True
+    is_bone[0] = False
     bone_seed = is_bone[lab]
-    other_seed = (lab > 0) & ~bone_seed
+    # Neighbours: the other pieces, and every H0 voxel outside the segment's region.
+    other_seed = ((lab > 0) & ~bone_seed) | (w0 & ~roi)
     if progress:
         progress(0.5, "competitive dilation")
-    if separated_at == 0:
-        w_h0 = bone_seed
-    else:
-        w_h0 = _competitive_assign(w0, bone_seed, other_seed, separated_at + 0.5)
-        w_h0 = _keep_connected_to(w_h0, bone_seed)
+    w_h0 = _competitive_assign(w0, bone_seed, other_seed, max(separated_at + 1, 4.0 / spacing))
+    w_h0 = _keep_connected_to(w_h0, bone_seed)
+    # H0 pieces that no seed reached (isolated fragments) belong to bone k when they lie in its
+    # region and touch the segment.
+    lab_u, n_u = ndimage.label(w0 & ~w_h0 & roi, structure=SIX)
+    if n_u:
+        sz = np.bincount(lab_u.ravel(), minlength=n_u + 1)
+        nr = np.bincount(lab_u[seg_near], minlength=n_u + 1)
+        touch_other = np.zeros(n_u + 1, dtype=bool)
+        touch_other[np.unique(lab_u[ndimage.binary_dilation(other_seed, structure=SIX) & (lab_u > 0)])] = True
+        add = (nr >= 0.5 * sz) & ~touch_other
+        add[0] = False
+        w_h0 |= add[lab_u]
     # The neighbours' H0 voxels: the rest of W_H0 in components that hold a neighbour seed.
     rest = w0 & ~w_h0
     lab_rest, n_rest = ndimage.label(rest, structure=SIX)

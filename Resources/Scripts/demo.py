@@ -44,7 +44,14 @@ def run(out_dir: str, label: str = DEFAULT_LABEL, preset_name: str = DEFAULT_PRE
     t0 = time.perf_counter()
     ct = bwio.read_ct(ct_path)
     mask, name = bwio.read_segment(seg_path, label)
-    params = preset(preset_name).validate()
+    # The sample is a 3 mm CT: partial volume lowers the cortex to ~500 HU and the vertebral
+    # body to ~150-250 HU, below the paper's thin-slice H0 = 300. Like the panel's Auto button,
+    # propose H0/HT from the HU histogram inside the segment, and close a little more (n = 3
+    # voxels = 3 mm at the auto spacing) so the porous body shell becomes one closed region.
+    from BoneWatertightLib.autothreshold import propose_thresholds
+
+    auto = propose_thresholds(ct, mask)
+    params = preset(preset_name, h0=float(auto["h0"]), ht=float(auto["ht"]), closing=3).validate()
     reconstruct = cli.load_reconstruct()
     captured = {}
 
@@ -61,7 +68,7 @@ def run(out_dir: str, label: str = DEFAULT_LABEL, preset_name: str = DEFAULT_PRE
                   * float(np.prod(mask.GetSpacing())) / 1000.0)
     inputs = {"ct": ct_path, "seg": seg_path, "label": label, "preset": preset_name,
               "ct_size": list(ct.GetSize()), "ct_spacing": list(ct.GetSpacing()),
-              "segment_volume_ml": segment_ml}
+              "segment_volume_ml": segment_ml, "auto_thresholds": auto}
     try:
         report = cli.reconstruct_and_write(ct, mask, name, stl, params, picture=png,
                                            progress=bar, inputs=inputs,
