@@ -84,14 +84,14 @@ def solve_spd(A, rhs, x0):
 
 
 class Deformer:
-    def __init__(self, vertices, faces, constraints, occupancy_field, spacing, params: Parameters,
-                 edge_length: float):
+    def __init__(self, vertices, faces, constraints, inside, params: Parameters, edge_length: float):
+        """``inside(points) -> bool array``: whether points lie inside the target bone (decides
+        the search direction)."""
         self.v = np.array(vertices, dtype=np.float64)
         self.f = np.asarray(faces)
         self.tree = cKDTree(constraints)
         self.constraints = constraints
-        self.occ = occupancy_field
-        self.spacing = spacing
+        self.inside = inside
         self.p = params
         self.d = edge_length
         n = len(self.v)
@@ -100,20 +100,23 @@ class Deformer:
         self.history = []
 
     def match(self, v, normals):
-        inside = sample_field(self.occ, v, self.spacing) >= 0.5
+        inside = self.inside(v)
         delta = self.p.search_offset * self.d
         radius = self.p.search_radius * self.d
         centre = v + np.where(inside[:, None], 1.0, -1.0) * normals * delta
+        # psi = of the constraint points within the search ball, the one nearest to v (eq. (7)
+        # restricted to the directional search area). Measured on the phantoms: taking the one
+        # nearest to v_c instead pushes the surface ~0.3 mm outward.
         k = 8
         dist, idx = self.tree.query(centre, k=k, distance_upper_bound=radius, workers=-1)
         valid = np.isfinite(dist)
-        safe = np.where(valid, idx, 0)
-        cand = self.constraints[safe]  # (n, k, 3)
+        cand = self.constraints[np.where(valid, idx, 0)]  # (n, k, 3)
         dv = np.linalg.norm(cand - v[:, None, :], axis=2)
         dv[~valid] = np.inf
         best = np.argmin(dv, axis=1)
-        matched = np.isfinite(dv[np.arange(len(v)), best])
-        psi = cand[np.arange(len(v)), best]
+        rows = np.arange(len(v))
+        matched = np.isfinite(dv[rows, best])
+        psi = cand[rows, best]
         # Keep only the normal component of the match: neighbouring vertices matched to the same
         # voxel point would otherwise slide together and fold the triangles between them.
         along = np.einsum("ij,ij->i", psi - v, normals)

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from . import __version__
 from .checks import check_surface
-from .deform import Deformer
+from .deform import Deformer, sample_field
 from .errors import SurfaceCheckError
 from .filtering import hybrid_filter
 from .mesh import Surface, enclosed_volume, mean_edge_length, surface_area
@@ -84,7 +84,7 @@ def reconstruct(ct: sitk.Image, mask: sitk.Image, params: Optional[Parameters] =
     times["threshold"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    surf_vox = boundary_voxels(thr.w_h0)
+    surf_vox = boundary_voxels(thr.solid_h0)
     p_h0_surface = voxel_points(surf_vox, d)
     sub = _stage(prog, "visible")
     vis_idx, vis_info = visible_points(p_h0_surface, params, d, progress=sub)
@@ -98,14 +98,16 @@ def reconstruct(ct: sitk.Image, mask: sitk.Image, params: Optional[Parameters] =
     sub = _stage(prog, "poisson")
     t0 = time.perf_counter()
     edge = params.edge_length or d
-    normals = mask_normals(thr.w_h0, visible, d)
+    normals = mask_normals(thr.solid_h0, visible, d)
     m0, raw = initial_surface(visible, normals, params.poisson_depth, edge)
     times["poisson"] = time.perf_counter() - t0
 
     sub = _stage(prog, "deform")
     t0 = time.perf_counter()
     occ_field = ndimage.gaussian_filter(thr.occupancy.astype(np.float32), sigma=0.7)
-    deformer = Deformer(m0.vertices, m0.faces, constraints, occ_field, d, params, mean_edge_length(m0.vertices, m0.faces))
+    deformer = Deformer(m0.vertices, m0.faces, constraints,
+                        lambda pts: sample_field(occ_field, pts, d) >= 0.5,
+                        params, mean_edge_length(m0.vertices, m0.faces))
     verts = deformer.run(progress=sub) if params.iterations > 0 else m0.vertices.copy()
     times["deform"] = time.perf_counter() - t0
     faces = m0.faces
@@ -116,7 +118,8 @@ def reconstruct(ct: sitk.Image, mask: sitk.Image, params: Optional[Parameters] =
     deformed = verts
     if params.refine_edges:
         ct_smooth = ndimage.gaussian_filter(prep.ct, sigma=max(0.5, 0.4 / d), mode="nearest")
-        cand, shift, frac_ok, safe = refine_to_edges(deformed, faces, ct_smooth, d, params.ht)
+        cand, shift, frac_ok, safe = refine_to_edges(deformed, faces, ct_smooth, d, params.ht,
+                                                     edge_level=params.edge_level)
         if safe:
             verts = cand
             refine_info = {"applied": True, "fraction_with_edge": frac_ok,

@@ -19,7 +19,7 @@ from .mesh import vertex_normals
 
 
 def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_contrast=150.0,
-                    alpha=0.3, beta=0.05, passes=3):
+                    alpha=0.3, beta=0.05, passes=3, edge_level=0.5):
     """Repeat :func:`refine_pass` (vertices held back by the back-off get another chance once
     their neighbours have moved). Returns (vertices, total shift, fraction refined, ok)."""
     v = vertices
@@ -27,7 +27,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_
     L = laplacian(len(vertices), faces)
     for k in range(passes):
         v, _, frac, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
-                                     alpha, beta, L=L)
+                                     alpha, beta, L=L, edge_level=edge_level)
         if not ok:
             break
     # Passes check only for flips; the exact self-intersection test runs once, against the
@@ -38,7 +38,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_
 
 
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_contrast=150.0,
-                alpha=0.3, beta=0.05, L=None):
+                alpha=0.3, beta=0.05, L=None, edge_level=0.5):
     """Return (new vertices, per-vertex shift along the normal, fraction refined, ok).
 
     The half-maximum points are soft targets of one regularised Laplacian step (as in the
@@ -58,7 +58,7 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_cont
     reach = np.maximum(t[i_peak] + 2.0, 1.5)
     outside = (cols > i_peak[:, None]) & (t[None, :] <= reach[:, None])
     valley = np.min(np.where(outside, prof, np.inf), axis=1)
-    level = 0.5 * (peak + valley)
+    level = valley + edge_level * (peak - valley)
     below = (prof < level[:, None]) & (cols > i_peak[:, None])
     first = np.argmax(below, axis=1)
     has = below[np.arange(len(prof)), first]

@@ -30,6 +30,7 @@ class ThresholdResult:
     occupancy: np.ndarray   # bool, filled bone k (inside / outside decisions)
     roi: np.ndarray         # bool, region the rough segment points at
     info: dict = field(default_factory=dict)
+    solid_h0: np.ndarray = None  # bool, w_h0 with pores plugged and cavities filled
 
 
 def _block_any(mask: np.ndarray, f: int) -> np.ndarray:
@@ -41,7 +42,7 @@ def _block_any(mask: np.ndarray, f: int) -> np.ndarray:
     return m.reshape(z, f, y, f, x, f).any(axis=(1, 3, 5))
 
 
-def segment_region(segment: np.ndarray, spacing: float, close_mm: float = 6.0,
+def segment_region(segment: np.ndarray, spacing: float, close_mm: float = 10.0,
                    dilate_mm: float = 3.0) -> np.ndarray:
     """Closed and dilated rough segment: fills its holes and missing chunks up to ~2*close_mm.
 
@@ -105,7 +106,13 @@ def _keep_connected_to(mask: np.ndarray, anchor: np.ndarray) -> np.ndarray:
 def two_step_threshold(ct_f: np.ndarray, segment: np.ndarray, spacing: float,
                        params: Parameters, progress=None) -> ThresholdResult:
     tmax = params.theta_max
-    roi = segment_region(segment, spacing, dilate_mm=params.segment_dilation)
+    # Closing fills missing chunks of the rough segment up to ~2 x 10 mm, less for small bones
+    # whose neighbours sit closer than that (0.15 x the segment's largest extent).
+    nzs = np.nonzero(segment.any(axis=(1, 2)))[0], np.nonzero(segment.any(axis=(0, 2)))[0], \
+        np.nonzero(segment.any(axis=(0, 1)))[0]
+    extent = max((a.max() - a.min() + 1) for a in nzs) * spacing
+    roi = segment_region(segment, spacing, close_mm=min(10.0, 0.15 * extent),
+                         dilate_mm=min(params.segment_dilation, 0.1 * extent))
     w0 = (ct_f >= params.h0) & (ct_f <= tmax)
     wt = (ct_f >= params.ht) & (ct_f <= tmax)
     seg_vals = ct_f[segment]
@@ -169,7 +176,7 @@ def two_step_threshold(ct_f: np.ndarray, segment: np.ndarray, spacing: float,
             f"(now {params.h0:g} HU), raise max_erosions (now {params.max_erosions}), use a finer resample "
             "spacing, or draw the rough segment over more of the bone.")
     # Bone k: every piece mostly inside the segment's region (thin bone breaks into fragments).
-    is_bone = (inroi >= 0.5 * size) & (near > 0) & (size > 0)
+    is_bone = (inroi >= 0.5 * size) & (near >= 0.2 * size) & (size > 0)
     is_bone[main] = True
     is_bone[0] = False
     bone_seed = is_bone[lab]
@@ -208,7 +215,12 @@ def two_step_threshold(ct_f: np.ndarray, segment: np.ndarray, spacing: float,
     if not w_h0.any():
         raise ThresholdError(
             "Opening removed the whole bone at H0: lower the opening iterations (l) or H0.")
-    occupancy = ndimage.binary_fill_holes(w_ht)
+    # Solid versions: marrow and pores connect to the outside through the porous trabecular ends,
+    # so a plain fill leaves them open and far views see the inner cortical wall through the
+    # pores. A ~1.5 mm closing plugs the pores, then the fill makes the bone solid; only its
+    # outer boundary feeds the visible-point extraction and the inside/outside decisions.
+    solid_h0 = solidify(w_h0, spacing)
+    occupancy = solidify(w_ht | solid_h0, spacing)
     info = {
         "erosions_used": int(separated_at),
         "erosion_steps": stats,
@@ -218,7 +230,8 @@ def two_step_threshold(ct_f: np.ndarray, segment: np.ndarray, spacing: float,
     }
     if progress:
         progress(1.0, "thresholding done")
-    return ThresholdResult(w_h0=w_h0, w_ht=w_ht, occupancy=occupancy, roi=roi, info=info)
+    return ThresholdResult(w_h0=w_h0, w_ht=w_ht, occupancy=occupancy, roi=roi, info=info,
+                           solid_h0=solid_h0)
 
 
 def _open_close(mask: np.ndarray, params: Parameters) -> np.ndarray:
@@ -234,6 +247,17 @@ def _open_close(mask: np.ndarray, params: Parameters) -> np.ndarray:
         # Opening must not cut the bone into pieces: keep what it removed where that happens.
         out = opened if opened.any() else out
     return out
+
+
+def solidify(mask: np.ndarray, spacing: float, radius_mm: float = 1.5) -> np.ndarray:
+    """Closing with a ~radius_mm ball (18-connected steps), then hole filling."""
+    steps = max(1, int(round(radius_mm / spacing)))
+    struct = ndimage.generate_binary_structure(3, 2)
+    pad = steps + 1
+    out = np.pad(mask, pad)
+    out = ndimage.binary_closing(out, structure=struct, iterations=steps)
+    out = out[pad:-pad, pad:-pad, pad:-pad] | mask
+    return ndimage.binary_fill_holes(out)
 
 
 def boundary_voxels(mask: np.ndarray) -> np.ndarray:

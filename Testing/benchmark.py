@@ -5,7 +5,7 @@
 
 Every method runs in its own freshly spawned process, so its wall time and peak memory are
 its own: wall time is measured around the call only (imports and file reading excluded);
-"peak MB" is the process's peak RSS (ru_maxrss) and "+MB" the part above the RSS just before
+"peak MB" is the process's peak RSS (VmHWM) and "+MB" the part above the RSS just before
 the call (the interpreter with numpy/vtk/open3d loaded and the inputs read).
 Each surface is checked (checks.check_surface) and compared with the phantom's analytic truth
 (metrics.surface_distance: exact point-to-triangle distances of uniform area samples, both
@@ -59,15 +59,28 @@ REAL_CASES = [
 
 # ---------------------------------------------------------------------------- child process
 
-def _rss_mb() -> float:
+def _status_mb(key: str) -> float:
     try:
         with open("/proc/self/status") as fh:
             for line in fh:
-                if line.startswith("VmRSS:"):
+                if line.startswith(key + ":"):
                     return float(line.split()[1]) / 1024.0
     except OSError:
         pass
     return float("nan")
+
+
+def _rss_mb() -> float:
+    return _status_mb("VmRSS")
+
+
+def _peak_mb() -> float:
+    """Peak RSS of this process image. VmHWM, not ru_maxrss: on Linux ru_maxrss survives
+    exec, so a spawned child would report its (large) parent's RSS."""
+    v = _status_mb("VmHWM")
+    if math.isnan(v):
+        v = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return v
 
 
 def _run_method(method: str, ct_path: str, mask_path: str, params: dict) -> dict:
@@ -109,14 +122,14 @@ def _run_method(method: str, ct_path: str, mask_path: str, params: dict) -> dict
             surf = baselines.METHODS[method](ct, mask, prm)
             out["seconds"] = time.perf_counter() - t0
         out["base_rss_mb"] = base
-        out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        out["peak_rss_mb"] = _peak_mb()
         out["vertices"] = np.asarray(surf.vertices, np.float64)
         out["faces"] = np.asarray(surf.faces, np.int64)
         out["ok"] = True
     except BaseException as exc:  # noqa: BLE001 - a failed method is a result, not a crash
         out["error"] = f"{type(exc).__name__}: {exc}"
         out["traceback"] = traceback.format_exc(limit=6)
-        out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        out["peak_rss_mb"] = _peak_mb()
     return out
 
 
@@ -584,7 +597,8 @@ def write_report(out_dir, results, args):
                 L.append(f"| {r['spacing']} | {r.get('surface_voxels')} | {r.get('faces')} | "
                          f"{_fmt(r.get('seconds'), 1)} | {_fmt(r.get('peak_rss_mb'), 0)} |")
             else:
-                L.append(f"| {r['spacing']} | {'not available' if r.get('not_available') else 'FAILED: ' + str(r.get('error'))[:120]} | | | |")
+                why = "not available" if r.get("not_available") else "FAILED: " + str(r.get("error"))[:120]
+                L.append(f"| {r['spacing']} | {why} | | | |")
         if sc.get("fit"):
             L += ["", f"Fit: time = {sc['fit']['coefficient']:.3g} * n^{sc['fit']['exponent']:.2f} "
                       "(n = surface voxels).", "", "![scaling](scaling/scaling.png)"]

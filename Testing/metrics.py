@@ -290,7 +290,8 @@ def vertex_distances(points, surface: Surface, signed: bool = True) -> np.ndarra
 
 
 def _stats(d: np.ndarray) -> dict:
-    return dict(mean=float(d.mean()), median=float(np.median(d)), p95=float(np.percentile(d, 95)), p98=float(np.percentile(d, 98)),
+    return dict(mean=float(d.mean()), median=float(np.median(d)), p95=float(np.percentile(d, 95)),
+                p98=float(np.percentile(d, 98)),
                 max=float(d.max()), frac_under_0_5=float((d < 0.5).mean()),
                 frac_under_1=float((d < 1.0).mean()), rms=float(np.sqrt((d * d).mean())))
 

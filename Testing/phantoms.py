@@ -72,6 +72,12 @@ CASES: dict[str, dict] = {
 
 @dataclass
 class Phantom:
+    """ct: int16 HU, physical LPS geometry (non-zero origin, direction possibly oblique).
+    mask: rough uint8 segment of the bone on a coarser grid (holes, islands, a missing slab).
+    truth / neighbour_truth: watertight meshes (LPS mm) of the bone's outer envelope and of the
+    hip-like cup. info: the case parameters plus derived figures; info["_model"] is the
+    geometry/HU model object (not JSON-serialisable; drop keys starting with "_")."""
+
     ct: sitk.Image
     mask: sitk.Image
     truth: Surface
