@@ -114,6 +114,7 @@ class BoneWatertightParameterNode:
     search_radius: Annotated[float, WithinRange(0.5, 4.0)] = 1.5
     search_offset: Annotated[float, WithinRange(0.1, 2.0)] = 0.75
     refine_edges: bool = True
+    edge_level: Annotated[float, WithinRange(0.3, 0.9)] = 0.6
 
 
 # Parameter-node fields that are algorithm parameters, and those where 0 means "auto" (None).
@@ -121,6 +122,7 @@ ALGORITHM_FIELDS = (
     "spacing", "margin", "segment_dilation", "max_memory_gb", "sigma", "rho", "theta_max", "h0", "ht",
     "max_erosions", "opening", "closing", "views", "view_distance", "log_radius", "poisson_depth",
     "edge_length", "iterations", "alpha", "beta", "search_radius", "search_offset", "refine_edges",
+    "edge_level",
 )
 AUTO_ZERO_FIELDS = ("spacing", "edge_length")
 
