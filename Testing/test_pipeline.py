@@ -1,0 +1,285 @@
+"""Per-stage known answers and end-to-end tests of BoneWatertightLib's pipeline (issue 5)."""
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from BoneWatertightLib import errors
+from BoneWatertightLib.checks import check_surface
+from BoneWatertightLib.deform import Deformer
+from BoneWatertightLib.mesh import Surface, enclosed_volume, mean_edge_length
+from BoneWatertightLib.params import Parameters, preset
+from BoneWatertightLib.pipeline import reconstruct
+from BoneWatertightLib.poisson import contour, poisson_surface, remesh
+from BoneWatertightLib.threshold import boundary_voxels, voxel_points
+from BoneWatertightLib.visible import hpr_visible, visible_points
+
+from metrics import surface_distance, vertex_distances
+from phantoms import make_phantom
+
+
+def sphere_points(n, radius=10.0, seed=0):
+    rng = np.random.default_rng(seed)
+    p = rng.normal(size=(n, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    return p * radius, p
+
+
+def sphere_mesh(radius, h):
+    """Closed sphere mesh by contouring a distance field (grid step h)."""
+    n = int(np.ceil(2.6 * radius / h))
+    g = (np.arange(n) - (n - 1) / 2) * h
+    zz, yy, xx = np.meshgrid(g, g, g, indexing="ij")
+    field = radius - np.sqrt(xx ** 2 + yy ** 2 + zz ** 2)
+    return contour(field, (g[0], g[0], g[0]), h, 0.0, smooth_iterations=0)
+
+
+# ----------------------------------------------------------------- visible points, eq. (1)
+
+def test_hpr_sphere_seen_from_outside_gives_near_hemisphere():
+    pts, dirs = sphere_points(20000)
+    view = np.array([0.0, 0.0, 200.0])
+    idx = hpr_visible(pts, view, log_radius=3.6)
+    vis = np.zeros(len(pts), bool)
+    vis[idx] = True
+    # From 200 mm the visible cap ends where the tangent from the viewpoint touches: z > r^2/200.
+    cap = pts[:, 2] > 10.0 ** 2 / 200.0 + 0.3
+    far = pts[:, 2] < -0.5
+    assert vis[cap].mean() > 0.97
+    assert vis[far].sum() == 0
+
+
+def test_visible_points_skip_inner_shell_and_interior_adds_nothing():
+    # A hollow capsule (cortical shell around a cavity): inner-wall voxels must stay hidden,
+    # and feeding all voxels instead of boundary voxels gives the same visible set.
+    d = 0.5
+    zz, yy, xx = np.meshgrid(np.arange(120) * d - 30, np.arange(70) * d - 17.5,
+                             np.arange(70) * d - 17.5, indexing="ij")
+    zc = np.clip(zz, -15, 15)
+    r = np.sqrt(xx ** 2 + yy ** 2 + (zz - zc) ** 2)
+    shell = (r < 8) & (r >= 6)
+    boundary = voxel_points(boundary_voxels(shell), d)
+    rr = np.linalg.norm(boundary - boundary.mean(0) - 0 * boundary, axis=1)
+    idx, info = visible_points(boundary, Parameters(), d)
+    q = boundary - np.array([17.5, 17.5, 30.0])
+    qz = np.clip(q[:, 2], -15, 15)
+    radius = np.sqrt(q[:, 0] ** 2 + q[:, 1] ** 2 + (q[:, 2] - qz) ** 2)
+    outer = radius > 7
+    sel = np.zeros(len(boundary), bool)
+    sel[idx] = True
+    assert sel[outer].mean() > 0.95
+    assert sel[~outer].sum() == 0
+    # Interior voxels add nothing: per view, the hull of all voxels has the same visible
+    # boundary voxels and no interior voxel (measured on 6 PCA views, far viewpoints).
+    all_vox = voxel_points(shell, d)
+    centre = all_vox.mean(axis=0)
+    for direction in np.vstack([np.eye(3), -np.eye(3)]):
+        view = centre + direction * 20 * 20.0
+        vb = {tuple(p) for p in np.round(boundary[hpr_visible(boundary, view, 3.6)] / d).astype(int)}
+        va = {tuple(p) for p in np.round(all_vox[hpr_visible(all_vox, view, 3.6)] / d).astype(int)}
+        assert len(va ^ vb) <= 0.01 * len(vb), (direction, len(va ^ vb), len(vb))
+    assert rr.size  # boundary not empty
+
+
+# ----------------------------------------------------------------- Poisson M0
+
+def test_poisson_sphere_is_watertight_genus0_with_right_radius():
+    pts, normals = sphere_points(8000, radius=10.0)
+    raw = poisson_surface(pts, normals, depth=6)
+    m0 = remesh(raw, edge_length=0.8)
+    rep = check_surface(m0.vertices, m0.faces)
+    assert rep.ok, rep.problems
+    assert rep.genus == 0
+    radius = np.linalg.norm(m0.vertices - m0.vertices.mean(0), axis=1)
+    assert abs(radius.mean() - 10.0) < 0.25
+    assert radius.std() < 0.15
+    assert 0.6 < mean_edge_length(m0.vertices, m0.faces) < 1.0
+
+
+# ----------------------------------------------------------------- deformation, Fig. 9
+
+def test_fig9_sphere_deforms_outward_shell_by_shell():
+    """Paper Fig. 9: a sphere of radius 100 deformed towards point shells of radius 100, 120,
+    140, 160 reaches 120, 140, 160 after 1, 2, 3 directional steps."""
+    rng = np.random.default_rng(1)
+    shells = []
+    for r in (100, 120, 140, 160):
+        p = rng.normal(size=(40000, 3))
+        shells.append(r * p / np.linalg.norm(p, axis=1, keepdims=True))
+    cloud = np.vstack(shells)
+    mesh = sphere_mesh(100.0, 8.0)
+    d_star = mean_edge_length(mesh.vertices, mesh.faces)
+    # Search ball: centre 20 mm out (one shell), radius 8 mm, so it holds the next shell only.
+    params = Parameters(iterations=3, search_offset=20.0 / d_star, search_radius=8.0 / d_star,
+                        alpha=1.0, beta=1e-3)
+    deformer = Deformer(mesh.vertices, mesh.faces, cloud, lambda p: np.ones(len(p), bool), params, d_star)
+    deformer.clean_v = deformer.v.copy()
+    for j, expected in enumerate((120.0, 140.0, 160.0), start=1):
+        # One directional iteration with the full step of the last iteration (c = psi - v).
+        new, matched, _ = deformer.step(3, 3, params.alpha, params.beta)
+        assert new is not None and matched.mean() > 0.95
+        deformer.v = new
+        radius = np.linalg.norm(new, axis=1)
+        assert abs(np.median(radius) - expected) < 3.0, (expected, np.median(radius))
+        assert radius.std() < 1.0
+        assert check_surface(new, mesh.faces).ok
+
+
+# ----------------------------------------------------------------- end to end on phantoms
+
+@pytest.fixture(scope="module")
+def tiny():
+    return make_phantom("tiny")
+
+
+@pytest.fixture(scope="module")
+def tiny_result(tiny):
+    return reconstruct(tiny.ct, tiny.mask, Parameters(keep_intermediates=True))
+
+
+def test_tiny_phantom_checks_accuracy_and_no_bridge(tiny, tiny_result):
+    surf = tiny_result.surface
+    rep = tiny_result.report
+    assert rep["checks"]["ok"] and rep["checks"]["genus"] == 0
+    assert rep["checks"]["n_components"] == 1
+    d = surface_distance(surf, tiny.truth, n_samples=60000)
+    # Measured: mean 0.14, p95 0.33, max 1.5 mm at 1 mm voxels (31 mm bone).
+    assert d["mean"] < 0.3 and d["p95"] < 0.6 and d["max"] < 2.5, d
+    # No bridge: the surface stays out of the neighbouring cup (gap 2 mm).
+    dn = vertex_distances(surf.vertices, tiny.neighbour_truth)
+    assert dn.min() > 0.3
+    assert np.all(np.isfinite(tiny_result.distance_to_constraints))
+    assert "DistanceToConstraints" in surf.point_data
+    for key in ("P_H0", "P_HT", "visible_points", "constraints", "M0"):
+        assert key in tiny_result.intermediates
+
+
+def test_inputs_are_not_modified(tiny):
+    ct_before = sitk.GetArrayFromImage(tiny.ct).copy()
+    mask_before = sitk.GetArrayFromImage(tiny.mask).copy()
+    reconstruct(tiny.ct, tiny.mask, Parameters(spacing=1.0, iterations=2))
+    assert np.array_equal(sitk.GetArrayFromImage(tiny.ct), ct_before)
+    assert np.array_equal(sitk.GetArrayFromImage(tiny.mask), mask_before)
+
+
+def _moved(image, rotation, origin):
+    out = sitk.Image(image)
+    direction = rotation @ np.array(image.GetDirection()).reshape(3, 3)
+    out.SetDirection(direction.ravel().tolist())
+    out.SetOrigin(origin.tolist())
+    return out
+
+
+def test_oblique_direction_and_origin_move_the_surface_the_same_way(tiny, tiny_result):
+    a = np.deg2rad(25.0)
+    rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]) @ \
+        np.array([[1, 0, 0], [0, np.cos(0.4), -np.sin(0.4)], [0, np.sin(0.4), np.cos(0.4)]])
+    new_origin = np.array([120.5, -43.25, 17.0])
+    ct2 = _moved(tiny.ct, rot, new_origin)
+    mask2 = _moved(tiny.mask, rot, new_origin + (np.array(tiny.mask.GetOrigin()) - np.array(tiny.ct.GetOrigin())) @ rot.T)
+    res2 = reconstruct(ct2, mask2, Parameters())
+    # The same voxels: map the first result's vertices through the same rigid motion.
+    o1 = np.array(tiny.ct.GetOrigin())
+    expected = (tiny_result.surface.vertices - o1) @ rot.T + new_origin
+    got = res2.surface.vertices
+    assert len(got) == len(expected)
+    diff = np.linalg.norm(got - expected, axis=1)
+    # Measured: mean 0.007, p99 0.15, max 0.7 mm. Not bit-identical: nearest-neighbour
+    # resampling of the coarse segment onto the rotated CT grid breaks a few ties differently,
+    # and the flip back-off of the deformation then reverts other vertices.
+    assert diff.mean() < 0.03 and np.percentile(diff, 99) < 0.3 and diff.max() < 1.0, \
+        (diff.mean(), np.percentile(diff, 99), diff.max())
+    v1 = enclosed_volume(tiny_result.surface.vertices, tiny_result.surface.faces)
+    assert abs(enclosed_volume(got, res2.surface.faces) - v1) < 0.002 * v1
+    assert res2.report["checks"]["ok"]
+
+
+def test_progress_reports_and_cancel(tiny):
+    seen = []
+
+    def cb(fraction, message):
+        seen.append(fraction)
+
+    reconstruct(tiny.ct, tiny.mask, Parameters(spacing=1.0, iterations=1), progress=cb)
+    assert seen[-1] == pytest.approx(1.0) and all(b >= a - 1e-9 for a, b in zip(seen, seen[1:]))
+
+    def cancel(fraction, message):
+        return fraction < 0.3
+
+    with pytest.raises(errors.CancelledError):
+        reconstruct(tiny.ct, tiny.mask, Parameters(spacing=1.0), progress=cancel)
+
+
+# ----------------------------------------------------------------- SPEC §5 error paths
+
+def _ball_ct(shape=(40, 40, 40), radius=8.0, spacing=1.0):
+    z, y, x = np.indices(shape)
+    c = (np.array(shape) - 1) / 2
+    r = np.sqrt((x - c[2]) ** 2 + (y - c[1]) ** 2 + (z - c[0]) ** 2) * spacing
+    arr = np.where(r < radius, 1200, 40).astype(np.int16)
+    arr = arr + np.random.default_rng(0).normal(0, 5, shape).astype(np.int16)
+    ct = sitk.GetImageFromArray(arr)
+    ct.SetSpacing([spacing] * 3)
+    mask = sitk.GetImageFromArray((r < radius - 1).astype(np.uint8))
+    mask.CopyInformation(ct)
+    return ct, mask
+
+
+def test_error_thresholds_out_of_order():
+    ct, mask = _ball_ct()
+    with pytest.raises(errors.InputError, match="HT < H0"):
+        reconstruct(ct, mask, Parameters(h0=100, ht=200))
+    with pytest.raises(errors.InputError, match="theta_max"):
+        reconstruct(ct, mask, Parameters(h0=300, theta_max=250))
+
+
+def test_error_empty_segment_and_no_overlap():
+    ct, mask = _ball_ct()
+    empty = sitk.Image(mask.GetSize(), sitk.sitkUInt8)
+    empty.CopyInformation(mask)
+    with pytest.raises(errors.EmptySegmentError):
+        reconstruct(ct, empty, Parameters())
+    far = sitk.Image(mask)
+    far.SetOrigin((500.0, 500.0, 500.0))
+    with pytest.raises(errors.NoOverlapError):
+        reconstruct(ct, far, Parameters())
+
+
+def test_error_no_voxel_in_windows():
+    ct, mask = _ball_ct()
+    with pytest.raises(errors.ThresholdError, match="HT"):
+        reconstruct(ct, mask, Parameters(ht=1500, h0=1800, theta_max=2500))
+    with pytest.raises(errors.ThresholdError, match="H0"):
+        reconstruct(ct, mask, Parameters(ht=150, h0=1500, theta_max=2500))
+
+
+def test_error_volume_types():
+    ct, mask = _ball_ct()
+    label = sitk.GetImageFromArray((sitk.GetArrayFromImage(ct) > 500).astype(np.uint8) * 3)
+    with pytest.raises(errors.VolumeTypeError, match="label map"):
+        reconstruct(label, mask, Parameters())
+    rgb = sitk.Compose([ct, ct, ct])
+    with pytest.raises(errors.VolumeTypeError, match="components"):
+        reconstruct(rgb, mask, Parameters())
+    two_d = sitk.GetImageFromArray(np.zeros((20, 20), np.int16))
+    with pytest.raises(errors.VolumeTypeError, match="2-D"):
+        reconstruct(two_d, mask, Parameters())
+
+
+def test_error_segment_touching_border_and_memory_limit():
+    ct, mask = _ball_ct()
+    arr = sitk.GetArrayFromImage(mask)
+    arr[0, 20, 20] = 1
+    border = sitk.GetImageFromArray(arr)
+    border.CopyInformation(mask)
+    with pytest.raises(errors.BorderError, match="border"):
+        reconstruct(ct, border, Parameters())
+    with pytest.raises(errors.MemoryLimitError, match="spacing of at least"):
+        reconstruct(ct, mask, Parameters(spacing=0.05, max_memory_gb=0.5))
+
+
+def test_error_unknown_preset_and_parameter():
+    with pytest.raises(errors.InputError):
+        preset("skull")
+    with pytest.raises(errors.InputError):
+        Parameters().replace(not_a_parameter=1)
