@@ -97,6 +97,7 @@ class Deformer:
         n = len(self.v)
         L = laplacian(n, self.f)
         self.LtL = (L.T @ L).tocsr()
+        self.avg = (sp.identity(n, format="csr") - L).tocsr()  # D^-1 A: 1-ring mean
         self.history = []
 
     def match(self, v, normals):
@@ -120,6 +121,13 @@ class Deformer:
         # Keep only the normal component of the match: neighbouring vertices matched to the same
         # voxel point would otherwise slide together and fold the triangles between them.
         along = np.einsum("ij,ij->i", psi - v, normals)
+        # Noise points of B* (B_N in the paper) show up as matches far from the neighbours':
+        # a vertex whose step differs from its 1-ring mean by more than half an edge is left
+        # free this iteration, so it cannot grow a spike.
+        w = matched.astype(np.float64)
+        cnt = self.avg @ w
+        nb = np.where(cnt > 0, (self.avg @ (w * along)) / np.maximum(cnt, 1e-12), 0.0)
+        matched &= np.abs(along - nb) <= 0.5 * self.d
         psi = v + along[:, None] * normals
         psi[~matched] = v[~matched]
         return psi, matched, inside

@@ -18,7 +18,7 @@ from .errors import SurfaceCheckError
 from .filtering import hybrid_filter
 from .mesh import Surface, enclosed_volume, mean_edge_length, surface_area
 from .params import Parameters
-from .poisson import initial_surface, mask_normals
+from .poisson import import_open3d, initial_surface, mask_normals
 from .prepare import prepare
 from .progress import Progress, ProgressCallback
 from .refine import refine_to_edges
@@ -66,6 +66,12 @@ def reconstruct(ct: sitk.Image, mask: sitk.Image, params: Optional[Parameters] =
     times = {}
     t_all = time.perf_counter()
     inter = {}
+
+    # open3d first: a missing dependency must fail before minutes of work, and its one-off
+    # import (~3 s) is reported apart from the Poisson stage.
+    t0 = time.perf_counter()
+    import_open3d()
+    times["import_open3d"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     prep = prepare(ct, mask, params)

@@ -49,11 +49,14 @@ PIPELINE_VARIANTS = {
 BASELINES = ["threshold_mc", "direct_poisson", "closing_wrap"]
 
 REAL_CASES = [
-    # (name, folder, label file, label value, preset, trim_slices)
+    # (name, folder, label file, label value, preset, trim): trim > 0 removes the segment's
+    # voxels within trim voxels of the volume border (the bone is cut by the scan there; the
+    # untrimmed femur shows the BorderError every method gives).
     ("pelvis3mm_femur_right", "ts_example_ct_abdomen_pelvis_3mm", "bones_labels.nrrd", 76, "femur", 0),
     ("pelvis3mm_femur_right_trimmed", "ts_example_ct_abdomen_pelvis_3mm", "bones_labels.nrrd", 76, "femur", 3),
-    ("pelvis3mm_T12", "ts_example_ct_abdomen_pelvis_3mm", "bones_labels.nrrd", 32, "vertebra", 0),
-    ("aorta1p5mm_T12", "ts_aorta_report_ct_cropped_1p5mm", "vertebra_T12_labels.nrrd", 32, "vertebra", 0),
+    ("pelvis3mm_L3", "ts_example_ct_abdomen_pelvis_3mm", "bones_labels.nrrd", 29, "vertebra", 0),
+    ("aorta1p5mm_T12_trimmed", "ts_aorta_report_ct_cropped_1p5mm", "vertebra_T12_labels.nrrd", 32,
+     "vertebra", 2),
 ]
 
 
@@ -456,8 +459,12 @@ def run_real_case(spec, args, out_dir, log):
     mask = sitk.Cast(sitk.Equal(lab, int(value)), sitk.sitkUInt8)
     if trim:
         arr = sitk.GetArrayFromImage(mask)
-        z = np.flatnonzero(arr.any(axis=(1, 2)))
-        arr[: z.min() + trim] = 0  # drop the slices at the volume border (bone cut by the scan)
+        for ax in range(3):
+            sl = [slice(None)] * 3
+            sl[ax] = slice(0, trim)
+            arr[tuple(sl)] = 0
+            sl[ax] = slice(arr.shape[ax] - trim, None)
+            arr[tuple(sl)] = 0
         m2 = sitk.GetImageFromArray(arr)
         m2.CopyInformation(mask)
         mask = m2
@@ -579,7 +586,7 @@ def write_report(out_dir, results, args):
               "the CT near the segment (a loose check: the HT isosurface itself leaks into neighbours).", ""]
         for r in results["real"]:
             L += [f"### {r['case']} ({r['folder']}, label {r['label']}, preset {r['preset']}"
-                  + (f", segment trimmed {r['trim_slices']} slices above the volume border" if r["trim_slices"] else "")
+                  + (f", segment trimmed {r['trim_slices']} voxels from the volume border" if r["trim_slices"] else "")
                   + ")", "", table(r["rows"], with_truth=False), ""]
             iso_rows = [(x["method"], x["to_ht_iso"]) for x in r["rows"] if x.get("to_ht_iso")]
             if iso_rows:

@@ -174,6 +174,7 @@ class _Model:
         u = self.head_c - self.neck_base
         self.cup_axis = u / np.linalg.norm(u)
         self.cup_r_in = self.head_r + cfg["gap"]
+        self.gap = cfg["gap"]
         self.cup_t = max(5.0 * s, 2.0)
         self.pelvis_blob = (self.head_c + self.cup_axis * (self.cup_r_in + self.cup_t + 3.0 * s),
                             9.0 * s)
@@ -211,7 +212,10 @@ class _Model:
         half = -(q @ self.cup_axis) - 0.2 * self.cup_r_in
         # Smooth maximum: a rounded rim (a sharp crease would fold the projected truth mesh).
         cup = -_smin(-shell, -half, 0.4 * self.cup_t)
-        return _smin(cup, _sphere(p, *self.pelvis_blob), max(2.0 * self.s, 0.6))
+        cup = _smin(cup, _sphere(p, *self.pelvis_blob), max(2.0 * self.s, 0.6))
+        # The rounded rim comes closer to the neck than the joint gap: keep the whole cup at
+        # least `gap` away from the bone (smooth max >= max, so the bound holds exactly).
+        return -_smin(-cup, -(self.gap - self.bone_sdf(p)), 0.3 * self.cup_t)
 
     def cortex_thickness(self, p):
         z0, z1 = self.dia_z
