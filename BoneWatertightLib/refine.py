@@ -30,9 +30,27 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_
                                      alpha, beta, L=L, edge_level=edge_level)
         if not ok:
             break
-    # Passes check only for flips; the exact self-intersection test runs once, against the
-    # verified input surface.
-    v, ok, _ = safe_update(vertices, v, faces)
+    # Passes check only for flips; the exact self-intersection test runs against the verified
+    # input surface. Vertices it puts back get another pass (they would stand out as spikes
+    # among refined neighbours), then the result is verified again; at most three rounds.
+    clean = vertices
+    for _ in range(3):
+        checked, ok, _ = safe_update(clean, v, faces)
+        if not ok:
+            v = clean
+            break
+        reverted = np.any(checked != v, axis=1)
+        clean = v = checked
+        if not reverted.any():
+            break
+        v, _, _, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
+                                  alpha, beta, L=L, edge_level=edge_level)
+        if not ok:
+            v = clean
+            break
+    else:
+        v = clean
+    ok = True
     n = vertex_normals(vertices, faces)
     return v, np.einsum("ij,ij->i", v - vertices, n), frac, ok
 
