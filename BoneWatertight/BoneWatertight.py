@@ -172,7 +172,9 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         # The segment selector has no parameter-node connector: sync it by hand.
         self.ui.segmentSelector.connect("currentNodeChanged(vtkMRMLNode*)", self.onSegmentSelectorChanged)
         self.ui.segmentSelector.connect("currentSegmentChanged(QString)", self.onSegmentSelectorChanged)
-        self.ui.presetComboBox.connect("currentIndexChanged(int)", self.onPresetChanged)
+        # activated(): user choices only. The parameter-node connector rewrites this combo on every
+        # connectGui/scene load, and re-applying a stored preset then would undo the user's edits.
+        self.ui.presetComboBox.connect("activated(int)", self.onPresetChanged)
         self.ui.autoThresholdButton.connect("clicked(bool)", self.onAutoThreshold)
         self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
 
@@ -246,6 +248,11 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 self.ui.segmentSelector.setCurrentSegmentID(self._parameterNode.segmentId)
         finally:
             self._updatingSegmentSelector = False
+        # Given a new node, the selector picks a segment itself (its signals were ignored above);
+        # adopt that choice, else segmentId stays "" while a segment is shown and Apply stays off.
+        shownSegmentId = (self.ui.segmentSelector.currentSegmentID() or "") if seg else ""
+        if shownSegmentId != self._parameterNode.segmentId:
+            self._parameterNode.segmentId = shownSegmentId
 
     def onSegmentSelectorChanged(self, *args) -> None:
         if self._parameterNode is None or self._updatingSegmentSelector:
@@ -345,7 +352,10 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self._savedViewState = None
         if self._previewNode is not None:
             if self._previewNode.GetScene() is not None:
+                displayNode = self._previewNode.GetDisplayNode()  # RemoveNode leaves it orphaned
                 slicer.mrmlScene.RemoveNode(self._previewNode)
+                if displayNode is not None:
+                    slicer.mrmlScene.RemoveNode(displayNode)
             self._previewNode = None
 
     # --- run
@@ -363,17 +373,27 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         except ImportError:
             pass
         requirements = self.resourcePath("requirements.txt")
-        packaging = getattr(slicer, "packaging", None)
-        if packaging is not None and hasattr(packaging, "pip_ensure"):
-            # skip_packages keeps pip away from Slicer's own builds of these libraries
-            packaging.pip_ensure(packaging.load_requirements(requirements), requester="BoneWatertight",
-                                 skip_packages=["SimpleITK", "vtk", "numpy"])
-        else:
-            if not slicer.util.confirmOkCancelDisplay(
-                    _("Bone Watertight needs the Python package open3d (about 400 MB download). Install it now?"),
-                    detailedText="open3d>=0.18"):
-                return False
-            slicer.util.pip_install(["open3d>=0.18", "--upgrade-strategy", "only-if-needed"])
+        try:
+            # a submodule is no attribute of `slicer` until imported; absent before Slicer 5.12
+            import slicer.packaging as packaging
+        except ImportError:
+            packaging = None
+        try:
+            if packaging is not None and hasattr(packaging, "pip_ensure"):
+                # skip_packages keeps pip away from Slicer's own builds of these libraries
+                packaging.pip_ensure(packaging.load_requirements(requirements), requester="BoneWatertight",
+                                     skip_packages=["SimpleITK", "vtk", "numpy"])
+            else:
+                if not slicer.util.confirmOkCancelDisplay(
+                        _("Bone Watertight needs the Python package open3d (about 400 MB download). "
+                          "Install it now?"),
+                        detailedText="open3d>=0.18"):
+                    return False
+                slicer.util.pip_install(["open3d>=0.18", "--upgrade-strategy", "only-if-needed"])
+        except Exception as exc:  # pip_ensure raises RuntimeError when declined, CalledProcessError on failure
+            logging.exception("BoneWatertight: installing open3d failed")
+            slicer.util.errorDisplay(_("open3d was not installed: {error}").format(error=exc))
+            return False
         try:
             import open3d  # noqa: F401
         except ImportError:

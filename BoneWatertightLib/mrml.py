@@ -497,6 +497,10 @@ def threshold_preview_labelmap(volumeNode, segmentationNode, segmentId: str, h0:
                                                scene.GenerateUniqueName("BoneWatertight preview"))
         labelmapNode.SetHideFromEditors(True)
         labelmapNode.SetSaveWithScene(False)
+        # slice views draw no volume that lacks a display node (AddNewNodeByClass creates none)
+        labelmapNode.CreateDefaultDisplayNodes()
+        if labelmapNode.GetDisplayNode() is not None:
+            labelmapNode.GetDisplayNode().SetSaveWithScene(False)
     m = vtk.vtkMatrix4x4()
     volumeNode.GetIJKToRASMatrix(m)
     labelmapNode.SetIJKToRASMatrix(m)
