@@ -45,6 +45,13 @@ def laplacian(n: int, faces: np.ndarray) -> sp.csr_matrix:
     return (sp.identity(n, format="csr") - dinv @ adj).tocsr()
 
 
+def ring_mean(avg: sp.csr_matrix, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted mean of ``values`` over each vertex's 1-ring (``avg`` = D^-1 A); 0 where no
+    neighbour has weight."""
+    cnt = avg @ weights
+    return np.where(cnt > 0, (avg @ (weights * values)) / np.maximum(cnt, 1e-12), 0.0)
+
+
 def sample_field(field_zyx: np.ndarray, points_grid_mm: np.ndarray, spacing: float, order: int = 1,
                  cval: float = 0.0) -> np.ndarray:
     coords = (points_grid_mm[:, ::-1] / spacing).T
@@ -124,9 +131,7 @@ class Deformer:
         # Noise points of B* (B_N in the paper) show up as matches far from the neighbours':
         # a vertex whose step differs from its 1-ring mean by more than half an edge is left
         # free this iteration, so it cannot grow a spike.
-        w = matched.astype(np.float64)
-        cnt = self.avg @ w
-        nb = np.where(cnt > 0, (self.avg @ (w * along)) / np.maximum(cnt, 1e-12), 0.0)
+        nb = ring_mean(self.avg, along, matched.astype(np.float64))
         matched &= np.abs(along - nb) <= 0.5 * self.d
         psi = v + along[:, None] * normals
         psi[~matched] = v[~matched]

@@ -110,11 +110,16 @@ def reconstruct(ct: sitk.Image, mask: sitk.Image, params: Optional[Parameters] =
 
     sub = _stage(prog, "deform")
     t0 = time.perf_counter()
-    occ_field = ndimage.gaussian_filter(thr.occupancy.astype(np.float32), sigma=0.7)
-    deformer = Deformer(m0.vertices, m0.faces, constraints,
-                        lambda pts: sample_field(occ_field, pts, d) >= 0.5,
-                        params, mean_edge_length(m0.vertices, m0.faces))
-    verts = deformer.run(progress=sub) if params.iterations > 0 else m0.vertices.copy()
+    history = []
+    if params.iterations > 0:
+        occ_field = ndimage.gaussian_filter(thr.occupancy.astype(np.float32), sigma=0.7)
+        deformer = Deformer(m0.vertices, m0.faces, constraints,
+                            lambda pts: sample_field(occ_field, pts, d) >= 0.5,
+                            params, mean_edge_length(m0.vertices, m0.faces))
+        verts = deformer.run(progress=sub)
+        history = deformer.history
+    else:
+        verts = m0.vertices.copy()
     times["deform"] = time.perf_counter() - t0
     faces = m0.faces
 
@@ -124,16 +129,11 @@ def reconstruct(ct: sitk.Image, mask: sitk.Image, params: Optional[Parameters] =
     deformed = verts
     if params.refine_edges:
         ct_smooth = ndimage.gaussian_filter(prep.ct, sigma=max(0.5, 0.4 / d), mode="nearest")
-        cand, shift, frac_ok, safe = refine_to_edges(deformed, faces, ct_smooth, d, params.ht,
-                                                     edge_level=params.edge_level)
-        if safe:
-            verts = cand
-            refine_info = {"applied": True, "fraction_with_edge": frac_ok,
-                           "mean_shift_mm": float(shift.mean()),
-                           "mean_abs_shift_mm": float(np.abs(shift).mean())}
-        else:
-            refine_info = {"applied": False,
-                           "reason": "the refined surface kept folding; kept the deformed one"}
+        verts, shift, frac_ok = refine_to_edges(deformed, faces, ct_smooth, d, params.ht,
+                                                edge_level=params.edge_level)
+        refine_info = {"applied": True, "fraction_with_edge": frac_ok,
+                       "mean_shift_mm": float(shift.mean()),
+                       "mean_abs_shift_mm": float(np.abs(shift).mean())}
     times["refine"] = time.perf_counter() - t0
 
     sub = _stage(prog, "checks")
@@ -183,7 +183,7 @@ def reconstruct(ct: sitk.Image, mask: sitk.Image, params: Optional[Parameters] =
             "faces": int(len(faces)),
         },
         "visible": vis_info,
-        "deformation": deformer.history if params.iterations > 0 else [],
+        "deformation": history,
         "refinement": refine_info,
         "mean_edge_length_mm": mean_edge_length(phys, faces),
         "area_mm2": surface_area(phys, faces),

@@ -35,12 +35,16 @@ def import_open3d():
 def mask_normals(mask: np.ndarray, points_grid_mm: np.ndarray, spacing: float) -> np.ndarray:
     """Outward unit normals at points from the gradient of the smoothed mask."""
     smooth = ndimage.gaussian_filter(mask.astype(np.float32), sigma=1.5)
-    idx = np.rint(points_grid_mm / spacing).astype(int)
-    idx = np.clip(idx, 0, np.array(mask.shape[::-1]) - 1)
-    grads = np.gradient(smooth)  # z, y, x
-    g = np.stack([grads[2][idx[:, 2], idx[:, 1], idx[:, 0]],
-                  grads[1][idx[:, 2], idx[:, 1], idx[:, 0]],
-                  grads[0][idx[:, 2], idx[:, 1], idx[:, 0]]], axis=1)
+    shape_xyz = np.array(mask.shape[::-1])
+    idx = np.clip(np.rint(points_grid_mm / spacing).astype(int), 0, shape_xyz - 1)
+    # Central differences at the points only (three full-volume gradient arrays cost ~GBs).
+    g = np.empty((len(idx), 3))
+    for axis in range(3):
+        lo, hi = idx.copy(), idx.copy()
+        lo[:, axis] = np.maximum(idx[:, axis] - 1, 0)
+        hi[:, axis] = np.minimum(idx[:, axis] + 1, shape_xyz[axis] - 1)
+        g[:, axis] = (smooth[hi[:, 2], hi[:, 1], hi[:, 0]] - smooth[lo[:, 2], lo[:, 1], lo[:, 0]]) \
+            / np.maximum(hi[:, axis] - lo[:, axis], 1)
     n = -g
     length = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.maximum(length, 1e-12)

@@ -14,20 +14,22 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .deform import laplacian, safe_update, sample_field, solve_spd
+from .deform import laplacian, ring_mean, safe_update, sample_field, solve_spd
 from .mesh import vertex_normals
 
 
 def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_contrast=150.0,
                     alpha=0.3, beta=0.05, passes=3, edge_level=0.5):
     """Repeat :func:`refine_pass` (vertices held back by the back-off get another chance once
-    their neighbours have moved). Returns (vertices, total shift, fraction refined, ok)."""
+    their neighbours have moved). Returns (vertices, total shift, fraction refined); the
+    vertices are verified free of flips and self-intersections against the input surface."""
     v = vertices
     frac = 0.0
     L = laplacian(len(vertices), faces)
-    for k in range(passes):
+    ops = ((L.T @ L).tocsr(), (sp.identity(len(vertices), format="csr") - L).tocsr())
+    for _ in range(passes):
         v, _, frac, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
-                                     alpha, beta, L=L, edge_level=edge_level)
+                                     alpha, beta, ops=ops, edge_level=edge_level)
         if not ok:
             break
     # Passes check only for flips; the exact self-intersection test runs against the verified
@@ -44,19 +46,18 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_
         if not reverted.any():
             break
         v, _, _, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
-                                  alpha, beta, L=L, edge_level=edge_level)
+                                  alpha, beta, ops=ops, edge_level=edge_level)
         if not ok:
             v = clean
             break
     else:
         v = clean
-    ok = True
     n = vertex_normals(vertices, faces)
-    return v, np.einsum("ij,ij->i", v - vertices, n), frac, ok
+    return v, np.einsum("ij,ij->i", v - vertices, n), frac
 
 
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_contrast=150.0,
-                alpha=0.3, beta=0.05, L=None, edge_level=0.5):
+                alpha=0.3, beta=0.05, ops=None, edge_level=0.5):
     """Return (new vertices, per-vertex shift along the normal, fraction refined, ok).
 
     The half-maximum points are soft targets of one regularised Laplacian step (as in the
@@ -88,16 +89,14 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_cont
     ok = has & np.isfinite(valley) & (peak - valley >= min_contrast) & (peak >= ht)
     shift = np.where(ok, np.clip(t_cross, -max_shift, max_shift), 0.0)
     w = ok.astype(np.float64)
-    if L is None:
+    if ops is None:
         L = laplacian(len(vertices), faces)
+        ops = ((L.T @ L).tocsr(), (sp.identity(len(vertices), format="csr") - L).tocsr())
+    LtL, avg = ops
     # A vertex whose edge disagrees with its neighbours' (noise, a pore at the surface, a
     # grazing profile) gets no target: the Laplacian term carries it with its neighbours.
-    avg = sp.identity(len(vertices), format="csr") - L
-    cnt = avg @ w
-    nb_shift = np.where(cnt > 0, (avg @ (w * shift)) / np.maximum(cnt, 1e-12), 0.0)
-    w[np.abs(shift - nb_shift) > max(0.4, 0.8 * spacing)] = 0.0
+    w[np.abs(shift - ring_mean(avg, shift, w)) > max(0.4, 0.8 * spacing)] = 0.0
     targets = vertices + shift[:, None] * n
-    LtL = (L.T @ L).tocsr()
     A = (alpha * LtL + sp.diags(w + beta)).tocsr()
     rhs = w[:, None] * targets + alpha * (LtL @ vertices) + beta * vertices
     new = solve_spd(A, rhs, vertices)

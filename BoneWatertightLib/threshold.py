@@ -80,7 +80,7 @@ def _competitive_assign(candidates: np.ndarray, bone_seed: np.ndarray, other_see
 
     A geodesic competition: cheaper than two distance maps, and a neighbour cannot claim voxels
     through a gap that only a straight line would cross."""
-    own = bone_seed & candidates | bone_seed
+    own = bone_seed.copy()
     other = other_seed & ~own
     steps = int(max_steps) if np.isfinite(max_steps) else 10 ** 6
     for _ in range(steps):

@@ -104,10 +104,8 @@ def visible_points(points: np.ndarray, params: Parameters, spacing: float,
     # Patch borders (grazing rays) pick up isolated points of inner layers: keep points with
     # enough visible neighbours within 2 voxels (a surface patch has ~12 of them).
     tree = cKDTree(points[vis])
-    counts = tree.query_ball_point(points[vis], r=2.01 * spacing, return_length=True, workers=-1)
-    stride_radius = 2.01 * spacing * max(1.0, np.sqrt(len(all_points) / max(len(points), 1)))
-    if len(points) != len(all_points):
-        counts = tree.query_ball_point(points[vis], r=stride_radius, return_length=True, workers=-1)
+    radius = 2.01 * spacing * max(1.0, np.sqrt(len(all_points) / max(len(points), 1)))
+    counts = tree.query_ball_point(points[vis], r=radius, return_length=True, workers=-1)
     clean = sub[vis[counts >= 4]]
     info = {"views_used": len(per_view), "per_view": per_view, "candidates": int(len(points)),
             "visible_raw": int(len(vis)),
