@@ -62,3 +62,51 @@ class DependencyError(BoneWatertightError, ImportError):
 
 class CancelledError(BoneWatertightError):
     """The user cancelled the run through the progress callback."""
+
+
+class OutputError(BoneWatertightError, OSError):
+    """An output file could not be written (disk full, permission, ...)."""
+
+
+# ----------------------------------------------------------------------------------------
+# The one exit-code table of every command line (bonewatertight / python -m BoneWatertightLib,
+# its --cases batch, the Slicer batch script and the demo).
+
+EXIT_OK = 0
+EXIT_INTERNAL = 1      # an unexpected internal error (a bug: please report it)
+EXIT_INPUT = 2         # bad input or usage; the message says what to change
+EXIT_FAILED = 3        # the reconstruction failed (batch: at least one case failed)
+EXIT_DEPENDENCY = 4    # a dependency or optional feature is missing
+EXIT_OUTPUT = 5        # an output could not be written, or another operating-system error
+EXIT_CANCELLED = 130   # cancelled (Ctrl-C or the progress callback)
+
+EXIT_CODES = {
+    EXIT_OK: "success",
+    EXIT_INTERNAL: "internal error",
+    EXIT_INPUT: "bad input",
+    EXIT_FAILED: "reconstruction failed",
+    EXIT_DEPENDENCY: "missing dependency",
+    EXIT_OUTPUT: "output or OS error",
+    EXIT_CANCELLED: "cancelled",
+}
+"""Exit code -> short status (the batch summary's status column)."""
+
+
+def exit_code_for(exc: BaseException) -> int:
+    """The documented exit code of an exception raised while processing a case."""
+    if isinstance(exc, (CancelledError, KeyboardInterrupt)):
+        return EXIT_CANCELLED
+    if isinstance(exc, DependencyError):
+        return EXIT_DEPENDENCY
+    if isinstance(exc, InputError):
+        return EXIT_INPUT
+    if isinstance(exc, BoneWatertightError) and not isinstance(exc, OutputError):
+        return EXIT_FAILED
+    if isinstance(exc, OSError):
+        return EXIT_OUTPUT
+    return EXIT_INTERNAL
+
+
+def one_line(exc: BaseException) -> str:
+    """The exception's message on one line."""
+    return " ".join(str(exc).split()) or type(exc).__name__

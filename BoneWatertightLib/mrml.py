@@ -15,8 +15,6 @@ created or touched after the pipeline succeeded.
 
 from __future__ import annotations
 
-import json
-import time
 from typing import Optional
 
 import numpy as np
@@ -32,8 +30,9 @@ from .errors import (
     NoOverlapError,
     VolumeTypeError,
 )
-from .mesh import Surface, to_polydata
+from .mesh.surface import Surface, to_polydata
 from .params import Parameters
+from .report import summary_line, to_json
 
 _FLIP_XY = np.diag([-1.0, -1.0, 1.0])
 DISTANCE_ARRAY = "DistanceToConstraints"
@@ -388,19 +387,13 @@ def _as_parameters(params) -> Parameters:
     raise InputError(f"params must be a Parameters object or a dict, got {type(params).__name__}.")
 
 
-def summarize(result) -> str:
-    """One-line human summary of a ReconstructionResult (for status lines and logs)."""
-    s = result.surface
-    report = result.report or {}
-    checks = report.get("checks", {})
-    ok = checks.get("ok") if isinstance(checks, dict) else None
-    d = np.asarray(result.distance_to_constraints, dtype=float)
-    dev = (f"distance to constraints mean {d.mean():.2f} / 95% {np.percentile(d, 95):.2f} / "
-           f"max {d.max():.2f} mm") if d.size else "no distances"
-    t = report.get("total_time", report.get("time_total"))
-    ttxt = f", {float(t):.1f} s" if isinstance(t, (int, float)) else ""
-    okt = "" if ok is None else (", checks passed" if ok else ", CHECKS FAILED")
-    return f"{s.n_vertices} vertices, {s.n_faces} faces{okt}{ttxt}; {dev}"
+def summarize(result, name: str = "") -> str:
+    """The one summary line of a ReconstructionResult (panel result line, logs): vertices,
+    faces, checks, distance to the constraint points and the pipeline's total time."""
+    report = result.report
+    return summary_line(name, report.checks, report.distance_to_constraints_mm,
+                        report.timings.total, result.surface.n_vertices,
+                        result.surface.n_faces)
 
 
 def run_on_nodes(volumeNode, segmentationNode, segmentId, outputModelNode=None, params=None,
@@ -412,7 +405,6 @@ def run_on_nodes(volumeNode, segmentationNode, segmentId, outputModelNode=None, 
     Returns ``(modelNode, result)``. The scene is only modified after the pipeline succeeded;
     any error (bad input, reconstruction failure, cancel) propagates with the scene unchanged.
     """
-    t0 = time.perf_counter()
     parameters = _as_parameters(params)
     if showIntermediates and not parameters.keep_intermediates:
         parameters = parameters.replace(keep_intermediates=True)
@@ -443,23 +435,18 @@ def run_on_nodes(volumeNode, segmentationNode, segmentId, outputModelNode=None, 
             surface = surface.copy()
             surface.point_data[DISTANCE_ARRAY] = d
     update_model_node(outputModelNode, surface, colorByDistance=colorByDistance)
-    try:
-        outputModelNode.SetAttribute(REPORT_ATTRIBUTE, json.dumps(result.report, default=str))
-    except (TypeError, ValueError):
-        pass  # the report is informative only; never fail a finished run on it
+    outputModelNode.SetAttribute(REPORT_ATTRIBUTE, to_json(result.report))
     if addAsSegment:
         segName = segmentationNode.GetSegmentation().GetSegment(segmentId).GetName()
         add_surface_as_segment(segmentationNode, surface, f"{segName} watertight")
     if showIntermediates and getattr(result, "intermediates", None):
         add_intermediate_nodes(scene, result.intermediates)
-    if isinstance(result.report, dict):
-        result.report.setdefault("mrml_total_time", time.perf_counter() - t0)
     return outputModelNode, result
 
 
 def propose_thresholds(volumeNode, segmentationNode, segmentId: str, theta_max: float = 2500.0) -> dict:
     """H0/HT proposal from the HU histogram in and around the segment (see autothreshold)."""
-    from .autothreshold import propose_thresholds as _propose
+    from .stages.autothreshold import propose_thresholds as _propose
 
     ct = volume_to_sitk(volumeNode)
     mask = segment_to_sitk_mask(segmentationNode, segmentId, volumeNode)

@@ -1,120 +1,371 @@
-"""The typed parameter object of the pipeline, with the paper's defaults and presets.
+"""The one parameter schema of the pipeline: every parameter declared once.
 
-Units: HU for thresholds, millimetres for lengths. ``None`` means "choose automatically".
+Each field of :class:`Parameters` carries a :class:`ParamSpec` (type, default, inclusive range,
+unit, what "auto" means, label, help text, pipeline stage, panel section). Everything else is
+derived from it: :meth:`Parameters.validate`, the command-line options and their ``--help``
+(:mod:`BoneWatertightLib.app.options`), the Slicer parameter node's fields with ``WithinRange``
+and the panel's widget bounds, tooltips and labels (``BoneWatertight/BoneWatertight.py``), the
+Slicer batch script's options and the presets.
+
+Units: HU for thresholds, millimetres for lengths. ``None`` means "choose automatically" (only
+for parameters whose spec has an ``auto`` text). Adding a parameter is one declaration::
+
+    at_border: str = param("cap", "prepare", None, label="At the CT border",
+                           choices=("cap", "error"), help="...")
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
-from typing import Optional
+import math
+import numbers
+import typing
+from dataclasses import dataclass
+from typing import Any, Optional
 
 from .errors import InputError
+
+# Pipeline stages, in order (the CLI groups its options by them).
+STAGES = {
+    "prepare": "crop + resample (paper 2.1, 3.1)",
+    "filter": "hybrid filter (paper 2.1)",
+    "threshold": "two-step threshold (paper 2.1)",
+    "visible": "visible points (paper 2.2)",
+    "poisson": "initial surface M0 (paper 2.3)",
+    "deform": "deformation (paper 2.4, 3.3)",
+    "refine": "edge refinement (ours)",
+    "output": "outputs",
+}
+# Sections of the Slicer panel that hold parameters (None: not in the panel).
+PANEL_SECTIONS = ("Thresholds", "Resampling", "Advanced")
+KINDS = (float, int, bool, str)
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """Everything about one parameter; filled in from its :func:`param` declaration.
+
+    ``minimum``/``maximum`` are inclusive. ``auto`` says what ``None`` means; a spec without it
+    does not accept ``None``. ``sentinel`` is the panel's slider value that stands for auto.
+    """
+
+    name: str
+    kind: type
+    default: Any
+    label: str
+    help: str
+    stage: str
+    panel: Optional[str]
+    unit: str = ""
+    minimum: Optional[float] = None
+    maximum: Optional[float] = None
+    choices: tuple = ()
+    auto: Optional[str] = None
+    paper: str = ""
+    step: Optional[float] = None
+    decimals: Optional[int] = None
+    sentinel: float = 0.0
+
+    @property
+    def advanced(self) -> bool:
+        return self.panel == "Advanced"
+
+    @property
+    def allows_auto(self) -> bool:
+        return self.auto is not None
+
+    @property
+    def numeric(self) -> bool:
+        return self.kind in (int, float)
+
+    def range_text(self) -> str:
+        """'0.3 to 0.9', '4 to 10', 'cap, error' or ''."""
+        if self.choices:
+            return ", ".join(self.choices)
+        if self.minimum is None and self.maximum is None:
+            return ""
+        unit = f" {self.unit}" if self.unit else ""
+        return f"{_fmt(self.minimum)} to {_fmt(self.maximum)}{unit}"
+
+    def default_text(self) -> str:
+        if self.default is None:
+            return "auto"
+        if self.kind is bool:
+            return "on" if self.default else "off"
+        unit = f" {self.unit}" if self.unit and self.numeric else ""
+        return f"{_fmt(self.default)}{unit}"
+
+    def describe(self) -> str:
+        """Help text with range, unit, auto meaning and default (CLI --help, tooltips)."""
+        parts = [self.help.rstrip(".") + "."]
+        if self.range_text():
+            parts.append(("One of: " if self.choices else "Range: ") + self.range_text() + ".")
+        if self.auto:
+            parts.append(f"auto: {self.auto}.")
+        parts.append(f"Default: {self.default_text()}"
+                     + (f" (paper: {self.paper})." if self.paper else "."))
+        return " ".join(parts)
+
+    def check(self, value) -> None:
+        """Raise InputError (naming the parameter, its value and its range) unless valid."""
+        if value is None:
+            if self.allows_auto:
+                return
+            raise InputError(f"{self.name} cannot be auto (None): {self._expect()}.")
+        if self.kind is bool:
+            if not isinstance(value, (bool, _np_bool())):
+                raise InputError(f"{self.name} must be true or false, got {value!r}.")
+            return
+        if self.kind is str:
+            if not isinstance(value, str) or value not in self.choices:
+                raise InputError(f"{self.name} must be one of {', '.join(self.choices)}, "
+                                 f"got {value!r}.")
+            return
+        if isinstance(value, (bool, _np_bool())) or not isinstance(value, numbers.Real):
+            raise InputError(f"{self.name} must be a number ({self._expect()}), got {value!r} "
+                             f"({type(value).__name__}).")
+        if self.kind is int and not isinstance(value, numbers.Integral):
+            raise InputError(f"{self.name} must be an integer ({self._expect()}), got {value!r}.")
+        if not math.isfinite(float(value)) or not (
+                (self.minimum is None or value >= self.minimum)
+                and (self.maximum is None or value <= self.maximum)):
+            raise InputError(f"{self.name} must be {self._expect()}, got {_fmt(value)}.")
+
+    def parse(self, text: str):
+        """Value from command-line text ('auto'/'none' for None where allowed)."""
+        text = str(text).strip()
+        if self.allows_auto and text.lower() in ("auto", "none"):
+            return None
+        if self.kind is bool:
+            low = text.lower()
+            if low in ("1", "true", "yes", "on"):
+                return True
+            if low in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(text)
+        return self.kind(text)
+
+    def to_panel(self, value):
+        """Library value -> parameter-node value (None becomes the sentinel)."""
+        return self.sentinel if value is None else value
+
+    def from_panel(self, value):
+        """Parameter-node value -> library value (the sentinel becomes None = auto)."""
+        if self.allows_auto and value == self.sentinel:
+            return None
+        return value
+
+    def panel_range(self) -> tuple:
+        """(minimum, maximum) of the panel's widget: the sentinel extends it for auto."""
+        low = min(self.sentinel, self.minimum) if self.allows_auto else self.minimum
+        return low, self.maximum
+
+    def _expect(self) -> str:
+        if self.minimum is None and self.maximum is None:
+            return "a number"
+        unit = f" {self.unit}" if self.unit else ""
+        return f"between {_fmt(self.minimum)} and {_fmt(self.maximum)}{unit}"
+
+
+def _fmt(value) -> str:
+    if isinstance(value, float) and math.isfinite(value):
+        return f"{value:g}"
+    return str(value)
+
+
+def _np_bool():
+    try:
+        import numpy as np
+    except ImportError:  # pragma: no cover
+        return bool
+    return np.bool_
+
+
+def param(default, stage: str, panel: Optional[str], *, label: str, help: str, **spec):
+    """Declare one parameter: a dataclass field whose metadata is its spec (see ParamSpec)."""
+    if stage not in STAGES:
+        raise ValueError(f"unknown stage {stage!r}")
+    if panel is not None and panel not in PANEL_SECTIONS:
+        raise ValueError(f"unknown panel section {panel!r}")
+    return dataclasses.field(default=default, metadata={
+        "spec": dict(default=default, stage=stage, panel=panel, label=label, help=help, **spec)})
 
 
 @dataclass
 class Parameters:
+    """The pipeline's parameters (defaults from the paper). See :data:`SCHEMA`."""
+
     # --- crop + resample (paper §2.1, §3.1)
-    spacing: Optional[float] = None
-    """Isotropic resample spacing d in mm. None: auto from the CT (finest in-plane spacing
-    divided by 2, clamped to [0.3, 1.0] mm); the paper uses 0.2-0.3 mm for long bones."""
-    margin: float = 5.0
-    """Margin in mm added around the rough segment's bounding box before cropping."""
-    segment_dilation: float = 3.0
-    """How far (mm) bone k may extend beyond the rough segment; covers missing chunks."""
-    max_memory_gb: float = 4.0
-    """Refuse a resample that is estimated to need more than this much memory."""
+    spacing: Optional[float] = param(
+        None, "prepare", "Resampling", label="Resample spacing d", unit="mm",
+        minimum=0.05, maximum=5.0, step=0.05, decimals=2,
+        auto="half the finest CT spacing, clamped to 0.3-1.0 mm",
+        paper="0.2-0.3 mm long bones, 0.1-0.2 mm vertebrae",
+        help="Isotropic resample spacing d of the working grid; coarser is faster")
+    margin: float = param(
+        5.0, "prepare", "Resampling", label="Crop margin", unit="mm", minimum=0.0, maximum=30.0,
+        step=1.0, decimals=1,
+        help="Margin added around the rough segment's bounding box before cropping")
+    segment_dilation: float = param(
+        3.0, "threshold", "Resampling", label="Segment reach", unit="mm", minimum=0.0,
+        maximum=20.0, step=0.5, decimals=1,
+        help="How far bone k may extend beyond the rough segment (covers missing chunks)")
+    max_memory_gb: float = param(
+        4.0, "prepare", "Resampling", label="Memory limit", unit="GB", minimum=0.25,
+        maximum=256.0, step=0.5, decimals=2,
+        help="Refuse a resample whose estimated memory exceeds this (the message says which "
+             "spacing fits)")
 
     # --- hybrid filter (paper §2.1)
-    sigma: float = 0.0
-    """Gaussian sigma in mm of the hybrid filter; 0 = auto (0.5 * resample spacing)."""
-    rho: float = 80.0
-    """Percentile of the gradient magnitude: voxels above it are edge voxels that get
-    sharpened (toggle-contrast), see filtering.py. 100 disables sharpening."""
+    sigma: Optional[float] = param(
+        None, "filter", "Advanced", label="Gaussian σ", unit="mm", minimum=0.05, maximum=3.0,
+        step=0.05, decimals=2, auto="0.5 x the resample spacing d",
+        help="Gaussian sigma of the hybrid filter (noise suppression)")
+    rho: float = param(
+        80.0, "filter", "Advanced", label="Gradient percentile ρ", unit="%", minimum=50.0,
+        maximum=100.0, step=1.0, decimals=0,
+        help="Voxels whose gradient magnitude is above this percentile (near the bone) are "
+             "sharpened by a toggle-contrast step; 100 disables sharpening")
 
     # --- two-step threshold (paper §2.1)
-    theta_max: float = 2500.0
-    h0: float = 300.0
-    ht: float = 150.0
-    max_erosions: int = 3
-    """m: the most erosions tried to separate bone k from its neighbours."""
-    opening: int = 1
-    """l: opening iterations on the final masks."""
-    closing: int = 2
-    """n: closing iterations on the final masks (fills pores and small holes)."""
+    theta_max: float = param(
+        2500.0, "threshold", "Thresholds", label="Upper limit θmax", unit="HU", minimum=500.0,
+        maximum=4000.0, step=10.0, decimals=0, paper="2500, up to 3000+",
+        help="Upper HU limit of both threshold windows (excludes metal); must be above H0")
+    h0: float = param(
+        300.0, "threshold", "Thresholds", label="Initial threshold H0", unit="HU",
+        minimum=-500.0, maximum=4000.0, step=5.0, decimals=0, paper="300, hip bone 350",
+        help="Lower limit of the initial window [H0, θmax]: only reliable (cortical) bone; "
+             "must be above HT")
+    ht: float = param(
+        150.0, "threshold", "Thresholds", label="Target threshold HT", unit="HU",
+        minimum=-500.0, maximum=4000.0, step=5.0, decimals=0, paper="150",
+        help="Lower limit of the target window [HT, θmax]: reaches the blurred bone border; "
+             "must be below H0")
+    max_erosions: int = param(
+        3, "threshold", "Advanced", label="Max. erosions m", minimum=1, maximum=10,
+        paper="at most 3",
+        help="m: the most erosions tried to separate bone k from its neighbours")
+    opening: int = param(
+        1, "threshold", "Advanced", label="Opening l", minimum=0, maximum=10,
+        help="l: opening iterations on the final masks (removes spurs)")
+    closing: int = param(
+        2, "threshold", "Advanced", label="Closing n", minimum=0, maximum=10,
+        help="n: closing iterations on the final masks (fills pores and small holes)")
 
     # --- visible points (paper §2.2)
-    views: int = 14
-    """Number of viewpoints: the 6 PCA axis directions plus 8 diagonals (up to 26)."""
-    view_distance: float = 20.0
-    """Viewpoint distance from the centroid in units of the bone's bounding radius. Far viewpoints
-    (20) keep hidden layers 2 mm behind the surface out of the hull at R = 10^3.6 (measured)."""
-    log_radius: float = 3.6
-    """R = 10**log_radius times the largest point distance from the viewpoint (paper: 3.5-3.8).
-    R is relative: the points are scaled to unit max distance before the flip."""
+    views: int = param(
+        14, "visible", "Advanced", label="Views", minimum=1, maximum=26, paper="6-8 or more",
+        help="Most viewpoints: the 6 PCA axis directions, then 8 diagonals and 12 edge "
+             "directions, until the union of visible points stops growing")
+    view_distance: float = param(
+        20.0, "visible", "Advanced", label="View distance", unit="x radius", minimum=1.0,
+        maximum=50.0, step=1.0, decimals=1,
+        help="Viewpoint distance from the centroid in bounding radii of the bone (far "
+             "viewpoints keep hidden layers out of the hull)")
+    log_radius: float = param(
+        3.6, "visible", "Advanced", label="log10 R", minimum=1.0, maximum=6.0, step=0.1,
+        decimals=2, paper="3.5-3.8",
+        help="Flip radius R = 10^log_radius times the farthest point's distance from the "
+             "viewpoint (R is relative, so independent of the bone's size)")
 
     # --- initial surface M0 (paper §2.3)
-    poisson_depth: int = 7
-    edge_length: Optional[float] = None
-    """Target edge length d* of M0 in mm; None: 1.0 * resample spacing."""
+    poisson_depth: int = param(
+        7, "poisson", "Advanced", label="Poisson depth", minimum=4, maximum=10, paper="7",
+        help="Octree depth of the screened Poisson reconstruction of M0")
+    edge_length: Optional[float] = param(
+        None, "poisson", "Advanced", label="Edge length d*", unit="mm", minimum=0.1,
+        maximum=5.0, step=0.05, decimals=2, auto="the resample spacing d",
+        help="Target mean edge length d* of M0 (also the unit of the search radius and offset)")
 
     # --- deformation (paper §2.4, §3.3)
-    iterations: int = 8
-    """N: number of deformation iterations (paper: 6-10)."""
-    alpha: float = 1.0
-    beta: float = 1.0
-    search_radius: float = 1.5
-    """Directional search radius in units of d* (paper: 1 - sqrt(3))."""
-    search_offset: float = 0.75
-    """|delta| of the search centre along the normal, in units of d* (paper: 0.5 - 1)."""
-    refine_edges: bool = True
-    """After deformation, move vertices along the normal to the half-maximum edge of the
-    filtered CT (sub-voxel). An addition to the paper; off gives the paper's HT surface."""
+    iterations: int = param(
+        8, "deform", "Advanced", label="Iterations N", minimum=0, maximum=50, paper="6-10",
+        help="N: deformation iterations (0 skips the deformation)")
+    alpha: float = param(
+        1.0, "deform", "Advanced", label="α", minimum=0.0, maximum=10.0, step=0.1, decimals=2,
+        paper="starts at 1",
+        help="Weight of the smoothness (Laplacian) term of eq. (15); halves when progress "
+             "stalls")
+    beta: float = param(
+        1.0, "deform", "Advanced", label="β", minimum=0.0, maximum=10.0, step=0.1, decimals=2,
+        paper="starts at 1",
+        help="Weight of the sharpness term of eq. (15), which keeps each step near the "
+             "previous iterate (damping, not the constraint pull); halves when progress stalls")
+    search_radius: float = param(
+        1.5, "deform", "Advanced", label="Search radius", unit="x d*", minimum=0.5, maximum=4.0,
+        step=0.05, decimals=2, paper="1 to √3",
+        help="Radius of the directional search ball, in units of d*")
+    search_offset: float = param(
+        0.75, "deform", "Advanced", label="Search offset δ", unit="x d*", minimum=0.1,
+        maximum=2.0, step=0.05, decimals=2, paper="0.5 to 1",
+        help="Distance |δ| of the search ball's centre along the normal, in units of d*")
 
-    edge_level: float = 0.6
-    """Where between the outside valley (0) and the bone peak (1) the refined edge sits
-    (0.5 = half maximum). 0.6 measured best over the phantoms: thin cortex blurred by the PSF puts
-    the half maximum outside the true border (0.7 is best for thin, 0.5 for thick cortex)."""
+    # --- edge refinement (ours)
+    refine_edges: bool = param(
+        True, "refine", "Advanced", label="Sub-voxel edge refinement",
+        help="After the deformation, move vertices along the normal to the CT profile's edge "
+             "(an addition to the paper; off gives the paper's HT surface)")
+    edge_level: float = param(
+        0.6, "refine", "Advanced", label="Edge level", minimum=0.3, maximum=0.9, step=0.05,
+        decimals=2,
+        help="Where the refined edge sits between the outside valley (0) and the bone peak (1) "
+             "of the CT profile (0.5 = half maximum; 0.6 measured best on the phantoms: thin "
+             "cortex blurred by the PSF puts the half maximum outside the true border)")
 
-    keep_intermediates: bool = False
+    # --- outputs
+    keep_intermediates: bool = param(
+        False, "output", None, label="Keep intermediate results",
+        help="Keep the point sets and M0 in the result (the panel's 'Show intermediate "
+             "results', the CLI's --save-intermediates)")
 
     def validate(self) -> "Parameters":
-        """Raise InputError naming the parameter to change; return self."""
+        """Check the type and range of every parameter and HT < H0 < theta_max.
+
+        Raises InputError naming the parameter, its value and its range; returns self.
+        """
+        for name, spec in SCHEMA.items():
+            spec.check(getattr(self, name))
         if not (self.ht < self.h0 < self.theta_max):
             raise InputError(
                 f"Thresholds out of order: need HT < H0 < theta_max, got HT={self.ht:g}, "
-                f"H0={self.h0:g}, theta_max={self.theta_max:g}. Lower HT or raise theta_max."
-            )
-        if self.spacing is not None and not (0.05 <= self.spacing <= 5.0):
-            raise InputError(f"Resample spacing {self.spacing:g} mm is outside 0.05-5 mm.")
-        if not 1 <= self.max_erosions <= 10:
-            raise InputError("max_erosions (m) must be between 1 and 10.")
-        if self.opening < 0 or self.closing < 0:
-            raise InputError("opening (l) and closing (n) iterations must be >= 0.")
-        if not 1 <= self.views <= 26:
-            raise InputError("views must be between 1 and 26.")
-        if not 4 <= self.poisson_depth <= 10:
-            raise InputError("poisson_depth must be between 4 and 10 (paper: 7).")
-        if not 0 <= self.iterations <= 50:
-            raise InputError("iterations (N) must be between 0 and 50 (paper: 6-10).")
-        if self.alpha < 0 or self.beta < 0:
-            raise InputError("alpha and beta must be >= 0.")
-        if not 0.5 <= self.search_radius <= 4:
-            raise InputError("search_radius must be between 0.5 and 4 (units of d*).")
-        if not 1.0 <= self.log_radius <= 6.0:
-            raise InputError("log_radius must be between 1 and 6 (paper: 3.5-3.8).")
-        if self.margin < 0:
-            raise InputError("margin must be >= 0 mm.")
+                f"H0={self.h0:g}, theta_max={self.theta_max:g}. Lower HT or raise theta_max.")
         return self
 
     def replace(self, **changes) -> "Parameters":
-        unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
+        """A copy with ``changes``; InputError for an unknown name."""
+        unknown = set(changes) - set(SCHEMA)
         if unknown:
-            raise InputError(f"Unknown parameter(s): {', '.join(sorted(unknown))}.")
+            raise InputError(f"Unknown parameter(s): {', '.join(sorted(unknown))}. "
+                             f"Known: {', '.join(SCHEMA)}.")
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def _build_schema(cls) -> dict:
+    hints = typing.get_type_hints(cls)
+    schema = {}
+    for f in dataclasses.fields(cls):
+        declared = dict(f.metadata["spec"])
+        kind = hints[f.name]
+        args = [a for a in typing.get_args(kind) if a is not type(None)]
+        if args:  # Optional[X]
+            kind = args[0]
+        if kind not in KINDS:
+            raise TypeError(f"parameter {f.name}: unsupported type {kind}")
+        spec = ParamSpec(name=f.name, kind=kind, **declared)
+        if spec.default is not None and spec.kind is not str:
+            spec.check(spec.default)
+        if spec.kind is str and spec.default not in spec.choices:
+            raise ValueError(f"parameter {f.name}: default not among its choices")
+        schema[f.name] = spec
+    return schema
+
+
+SCHEMA: dict = _build_schema(Parameters)
+"""Parameter name -> :class:`ParamSpec`, in declaration (pipeline) order."""
 
 
 PRESETS = {
@@ -122,14 +373,25 @@ PRESETS = {
     "femur": dict(h0=300.0, ht=150.0, theta_max=2500.0, max_erosions=2),
     # Paper Fig. 11: hip bone H0 = 350.
     "hip": dict(h0=350.0, ht=150.0, theta_max=2500.0, max_erosions=3),
-    # Short bones / vertebrae: narrow gaps, so erode more and resample finer.
+    # Short bones / vertebrae: narrow gaps, so erode more and look from more directions.
     "vertebra": dict(h0=300.0, ht=150.0, theta_max=2500.0, max_erosions=3, views=18),
 }
+"""Each preset sets only its own fields (thresholds and morphology); the rest keep their value."""
+
+
+def preset_name(name: str) -> str:
+    """Canonical preset name; InputError for an unknown one."""
+    key = str(name).lower().replace("short_bone", "vertebra").replace("short bone", "vertebra")
+    if key not in PRESETS:
+        raise InputError(f"Unknown preset '{name}'. Choose one of: {', '.join(PRESETS)}.")
+    return key
+
+
+def apply_preset(params: Parameters, name: str) -> Parameters:
+    """``params`` with the preset's own fields set (every other field unchanged)."""
+    return params.replace(**PRESETS[preset_name(name)])
 
 
 def preset(name: str, **overrides) -> Parameters:
-    """Parameters of a named preset ('femur', 'hip', 'vertebra'), with overrides."""
-    key = name.lower().replace("short_bone", "vertebra").replace("short bone", "vertebra")
-    if key not in PRESETS:
-        raise InputError(f"Unknown preset '{name}'. Choose one of: {', '.join(PRESETS)}.")
-    return Parameters(**PRESETS[key]).replace(**overrides)
+    """Parameters of a named preset ('femur', 'hip', 'vertebra') on the defaults, with overrides."""
+    return apply_preset(Parameters(), name).replace(**overrides)

@@ -104,7 +104,7 @@ def _run_method(method: str, ct_path: str, mask_path: str, params: dict) -> dict
             except Exception as exc:  # the pipeline may not exist yet
                 return {"method": method, "ok": False, "not_available": True,
                         "error": f"pipeline not available: {type(exc).__name__}: {exc}"}
-            import BoneWatertightLib.deform  # noqa: F401  (imports before the clock starts)
+            import BoneWatertightLib.stages.deform  # noqa: F401  (imports before the clock starts)
             import open3d  # noqa: F401
             base = _rss_mb()
             prm = Parameters(**params).replace(**PIPELINE_VARIANTS[method])
@@ -113,10 +113,12 @@ def _run_method(method: str, ct_path: str, mask_path: str, params: dict) -> dict
             out["seconds"] = time.perf_counter() - t0
             surf = res.surface
             rep = res.report
-            out["report"] = {k: rep.get(k) for k in ("times_s", "counts", "refinement", "input",
-                                                     "distance_to_constraints_mm")}
+            from BoneWatertightLib.report import to_plain
+            out["report"] = {"times_s": to_plain(rep.timings), "counts": to_plain(rep.counts),
+                             "refinement": to_plain(rep.refinement), "input": to_plain(rep.input),
+                             "distance_to_constraints_mm": to_plain(rep.distance_to_constraints_mm)}
         else:
-            from BoneWatertightLib import baselines
+            import baselines
             import open3d  # noqa: F401
             import vtk  # noqa: F401
             base = _rss_mb()
@@ -156,7 +158,7 @@ def run_isolated(method, ct_path, mask_path, params, timeout):
 # ---------------------------------------------------------------------------- evaluation
 
 def evaluate(result, truth, neighbour, n_samples, check_si_max_faces=400_000):
-    from BoneWatertightLib.checks import check_surface
+    from BoneWatertightLib.mesh.checks import check_surface
     from metrics import TriangleLocator, sample_surface, surface_distance
 
     row = {k: v for k, v in result.items() if k not in ("vertices", "faces")}
@@ -427,7 +429,7 @@ def run_phantom_case(case, args, out_dir, log):
 def _iso_surface_near(ct, mask, level, params):
     """HT isosurface of the CT (on the pipeline's working grid) near the segment."""
     from scipy import ndimage
-    from BoneWatertightLib.baselines import _dilate_mm, _prepared
+    from baselines import _dilate_mm, _prepared
     prep = _prepared(ct, mask, params)
     d = prep.grid.spacing
     near = _dilate_mm(prep.segment, (params.segment_dilation + 3.0) / d)

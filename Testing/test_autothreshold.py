@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from BoneWatertightLib.autothreshold import propose_thresholds, tissue_levels
+from BoneWatertightLib.stages.autothreshold import propose_thresholds, tissue_levels
 from BoneWatertightLib.errors import EmptySegmentError, ThresholdError
 
 

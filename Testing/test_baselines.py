@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from BoneWatertightLib import baselines
-from BoneWatertightLib.checks import check_surface
+import baselines
+from BoneWatertightLib.mesh.checks import check_surface
 from BoneWatertightLib.mesh import enclosed_volume
 from BoneWatertightLib.params import preset
 from metrics import surface_distance

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from BoneWatertightLib.checks import check_surface, find_self_intersections, require_valid
+from BoneWatertightLib.mesh.checks import check_surface, find_self_intersections, require_valid
 from BoneWatertightLib.errors import SurfaceCheckError
 from BoneWatertightLib.mesh import Surface
 

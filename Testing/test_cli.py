@@ -18,8 +18,9 @@ ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, ROOT)
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from BoneWatertightLib import cli  # noqa: E402
+from BoneWatertightLib.app import cli  # noqa: E402
 from BoneWatertightLib import io as bwio  # noqa: E402
+from BoneWatertightLib.io import meshes  # noqa: E402
 from BoneWatertightLib.params import Parameters  # noqa: E402
 from test_io import write_dicom_series  # noqa: E402
 
@@ -198,20 +199,6 @@ def test_label_map_given_as_ct(case, tmp_path, capsys):
     assert os.listdir(tmp_path) == []
 
 
-def test_picture_without_renderer_is_an_error(bad_case, capsys):
-    ct, mask, out = bad_case
-    try:
-        cli.render_function()
-    except Exception:
-        code, _, stderr = run(["--ct", ct, "--seg", mask, "--label", "1",
-                               "--out", str(out / "b.stl"), "--picture", str(out / "b.png")],
-                              capsys)
-        assert code == 4 and "--picture is not available" in stderr
-        assert os.listdir(out) == []
-    else:
-        pytest.skip("BoneWatertightLib.render is available; the picture path is tested there")
-
-
 def test_cancel_exit_130_no_output(bad_case, capsys, monkeypatch):
     ct, mask, out = bad_case
     calls = []
@@ -237,11 +224,11 @@ def test_failed_write_leaves_no_output(bad_case, capsys, monkeypatch):
             f.write(b"half")
         raise OSError("No space left on device")
 
-    monkeypatch.setitem(bwio._WRITERS, ".stl", broken)
+    monkeypatch.setitem(meshes._WRITERS, ".stl", broken)
     code, _, stderr = run(["--ct", ct, "--seg", mask, "--label", "1",
                            "--out", str(out / "b.stl"), "--report", str(out / "r.json")]
                           + FAST, capsys)
-    assert code == 1 and "No space left on device" in stderr
+    assert code == 5 and "No space left on device" in stderr
     assert os.listdir(out) == []
 
 

@@ -10,6 +10,7 @@ import SimpleITK as sitk
 sys.path.insert(0, os.path.abspath(os.path.join(os.path.dirname(__file__), "..")))
 
 from BoneWatertightLib import io as bwio  # noqa: E402
+from BoneWatertightLib.io import meshes  # noqa: E402
 from BoneWatertightLib.errors import EmptySegmentError, InputError, VolumeTypeError  # noqa: E402
 from BoneWatertightLib.mesh import enclosed_volume, from_polydata  # noqa: E402
 
@@ -91,7 +92,7 @@ def raw_points(path):
     """Vertices as stored in the file, ignoring any SPACE tag."""
     import vtk
 
-    ext = bwio._extension(path)
+    ext = bwio.extension(path)
     reader = {".stl": vtk.vtkSTLReader, ".ply": vtk.vtkPLYReader, ".obj": vtk.vtkOBJReader,
               ".vtp": vtk.vtkXMLPolyDataReader, ".vtk": vtk.vtkPolyDataReader}[ext]()
     reader.SetFileName(path)
@@ -228,7 +229,7 @@ def test_failed_write_leaves_previous_file_and_no_temp(tmp_path, monkeypatch):
             f.write(b"half a file")
         raise OSError("disk full")
 
-    monkeypatch.setitem(bwio._WRITERS, ".stl", broken)
+    monkeypatch.setitem(meshes._WRITERS, ".stl", broken)
     with pytest.raises(OSError, match="disk full"):
         bwio.write_surface(sphere_surface(), str(path))
     assert path.read_bytes() == b"previous result"
@@ -241,7 +242,7 @@ def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch):
             f.write(b"half")
         raise KeyboardInterrupt
 
-    monkeypatch.setitem(bwio._WRITERS, ".ply", interrupted)
+    monkeypatch.setitem(meshes._WRITERS, ".ply", interrupted)
     with pytest.raises(KeyboardInterrupt):
         bwio.write_surface(sphere_surface(), str(tmp_path / "bone.ply"))
     assert os.listdir(tmp_path) == []

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from BoneWatertightLib.checks import check_surface
+from BoneWatertightLib.mesh.checks import check_surface
 from BoneWatertightLib.mesh import enclosed_volume
 from phantoms import CASES, make_phantom
 

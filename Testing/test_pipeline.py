@@ -5,14 +5,14 @@ import pytest
 import SimpleITK as sitk
 
 from BoneWatertightLib import errors
-from BoneWatertightLib.checks import check_surface
-from BoneWatertightLib.deform import Deformer
+from BoneWatertightLib.mesh.checks import check_surface
+from BoneWatertightLib.stages.deform import Deformer
 from BoneWatertightLib.mesh import Surface, enclosed_volume, mean_edge_length
 from BoneWatertightLib.params import Parameters, preset
 from BoneWatertightLib.pipeline import reconstruct
-from BoneWatertightLib.poisson import contour, poisson_surface, remesh
-from BoneWatertightLib.threshold import boundary_voxels, voxel_points
-from BoneWatertightLib.visible import hpr_visible, visible_points
+from BoneWatertightLib.stages.poisson import contour, poisson_surface, remesh
+from BoneWatertightLib.stages.threshold import boundary_voxels, voxel_points
+from BoneWatertightLib.stages.visible import hpr_visible, visible_points
 
 from metrics import surface_distance, vertex_distances
 from phantoms import make_phantom
@@ -60,7 +60,7 @@ def test_visible_points_skip_inner_shell_and_interior_adds_nothing():
     shell = (r < 8) & (r >= 6)
     boundary = voxel_points(boundary_voxels(shell), d)
     rr = np.linalg.norm(boundary - boundary.mean(0) - 0 * boundary, axis=1)
-    idx, info = visible_points(boundary, Parameters(), d)
+    idx, info = visible_points(boundary, d)
     q = boundary - np.array([17.5, 17.5, 30.0])
     qz = np.clip(q[:, 2], -15, 15)
     radius = np.sqrt(q[:, 0] ** 2 + q[:, 1] ** 2 + (q[:, 2] - qz) ** 2)
@@ -110,13 +110,14 @@ def test_fig9_sphere_deforms_outward_shell_by_shell():
     mesh = sphere_mesh(100.0, 8.0)
     d_star = mean_edge_length(mesh.vertices, mesh.faces)
     # Search ball: centre 20 mm out (one shell), radius 8 mm, so it holds the next shell only.
-    params = Parameters(iterations=3, search_offset=20.0 / d_star, search_radius=8.0 / d_star,
-                        alpha=1.0, beta=1e-3)
-    deformer = Deformer(mesh.vertices, mesh.faces, cloud, lambda p: np.ones(len(p), bool), params, d_star)
+    alpha, beta = 1.0, 1e-3
+    deformer = Deformer(mesh.vertices, mesh.faces, cloud, lambda p: np.ones(len(p), bool), d_star,
+                        iterations=3, search_offset=20.0 / d_star, search_radius=8.0 / d_star,
+                        alpha=alpha, beta=beta)
     deformer.clean_v = deformer.v.copy()
     for j, expected in enumerate((120.0, 140.0, 160.0), start=1):
         # One directional iteration with the full step of the last iteration (c = psi - v).
-        new, matched, _ = deformer.step(3, 3, params.alpha, params.beta)
+        new, matched, _ = deformer.step(3, 3, alpha, beta)
         assert new is not None and matched.mean() > 0.95
         deformer.v = new
         radius = np.linalg.norm(new, axis=1)
@@ -140,8 +141,8 @@ def tiny_result(tiny):
 def test_tiny_phantom_checks_accuracy_and_no_bridge(tiny, tiny_result):
     surf = tiny_result.surface
     rep = tiny_result.report
-    assert rep["checks"]["ok"] and rep["checks"]["genus"] == 0
-    assert rep["checks"]["n_components"] == 1
+    assert rep.checks.ok and rep.checks.genus == 0
+    assert rep.checks.n_components == 1
     d = surface_distance(surf, tiny.truth, n_samples=60000)
     # Measured: mean 0.14, p95 0.33, max 1.5 mm at 1 mm voxels (31 mm bone).
     assert d["mean"] < 0.3 and d["p95"] < 0.6 and d["max"] < 2.5, d
@@ -190,7 +191,7 @@ def test_oblique_direction_and_origin_move_the_surface_the_same_way(tiny, tiny_r
     assert d["mean"] < 0.03 and d["p98"] < 0.3 and d["max"] < 1.0, d
     v1 = enclosed_volume(tiny_result.surface.vertices, tiny_result.surface.faces)
     assert abs(enclosed_volume(got, res2.surface.faces) - v1) < 0.003 * v1
-    assert res2.report["checks"]["ok"]
+    assert res2.report.checks.ok
 
 
 def test_progress_reports_and_cancel(tiny):

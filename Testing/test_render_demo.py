@@ -14,7 +14,7 @@ import SimpleITK as sitk
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, ROOT)
 
-from BoneWatertightLib import render  # noqa: E402
+from BoneWatertightLib.app import render  # noqa: E402
 from BoneWatertightLib.errors import InputError  # noqa: E402
 from BoneWatertightLib.mesh import Surface  # noqa: E402
 

@@ -1,4 +1,9 @@
-"""Triangle-mesh container and conversions (numpy <-> vtkPolyData)."""
+"""Triangle-mesh container, measures and conversions (numpy <-> vtkPolyData).
+
+Vertices are (n, 3) float64 x-y-z points in millimetres (physical LPS unless the
+``coordinate_system`` says RAS, or grid millimetres inside the pipeline); faces are (m, 3) int64
+vertex indices, counter-clockwise seen from outside.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +11,8 @@ from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
+
+from .operators import face_normals, vertex_normals
 
 
 @dataclass
@@ -57,25 +64,6 @@ class Surface:
         out.vertices[:, :2] *= -1.0
         out.coordinate_system = "LPS"
         return out
-
-
-def face_normals(vertices: np.ndarray, faces: np.ndarray, normalize: bool = True) -> np.ndarray:
-    v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
-    n = np.cross(v1 - v0, v2 - v0)
-    if normalize:
-        length = np.linalg.norm(n, axis=1, keepdims=True)
-        n = n / np.maximum(length, 1e-300)
-    return n
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals."""
-    fn = face_normals(vertices, faces, normalize=False)
-    vn = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
-    length = np.linalg.norm(vn, axis=1, keepdims=True)
-    return vn / np.maximum(length, 1e-300)
 
 
 def enclosed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:

@@ -21,8 +21,8 @@ from typing import Optional, Sequence, Union
 
 import numpy as np
 
-from .errors import DependencyError, InputError
-from .mesh import Surface
+from ..errors import DependencyError, InputError
+from ..mesh.surface import Surface
 
 # Bone window (HU) for the CT slices: soft tissue grey, cortical bone white.
 DEFAULT_WINDOW = (-350.0, 1250.0)
@@ -497,3 +497,7 @@ def render_cross_sections(ct, surfaces: dict, path, center=None, title: Optional
         fig.suptitle(title, fontsize=11)
     _save(fig, path)
     return os.fspath(path)
+
+
+class RenderUnavailable(DependencyError):
+    """Pictures cannot be rendered on this machine (the run goes on without one)."""

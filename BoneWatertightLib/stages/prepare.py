@@ -12,13 +12,17 @@ from dataclasses import dataclass
 import numpy as np
 import SimpleITK as sitk
 
-from .errors import (BorderError, EmptySegmentError, InputError, MemoryLimitError,
-                     NoOverlapError, VolumeTypeError)
-from .params import Parameters
+from ..errors import (BorderError, EmptySegmentError, InputError, MemoryLimitError,
+                      NoOverlapError, VolumeTypeError)
 
 # Bytes held per resampled voxel at the peak of the pipeline: the float32 CT, the filtered CT,
 # a few boolean masks and two float64 distance maps of the threshold stage.
 BYTES_PER_VOXEL = 40
+# Automatic resample spacing: the finest CT spacing times AUTO_SPACING_FACTOR, clamped.
+AUTO_SPACING_FACTOR = 0.5
+AUTO_SPACING_RANGE_MM = (0.3, 1.0)
+# Value of resampled voxels outside the CT (air).
+OUTSIDE_HU = -1000.0
 
 
 @dataclass
@@ -111,7 +115,8 @@ def segment_on_ct_grid(ct: sitk.Image, mask: sitk.Image) -> sitk.Image:
 def auto_spacing(ct: sitk.Image) -> float:
     """Half the finest CT spacing, clamped to [0.3, 1.0] mm (paper: 0.2-0.3 mm for long bones,
     which costs ~10x more; the deformation reaches sub-voxel accuracy at 0.5 mm)."""
-    return float(np.clip(min(ct.GetSpacing()) / 2.0, 0.3, 1.0))
+    lo, hi = AUTO_SPACING_RANGE_MM
+    return float(np.clip(min(ct.GetSpacing()) * AUTO_SPACING_FACTOR, lo, hi))
 
 
 def estimate_memory_bytes(extent_mm: np.ndarray, spacing: float) -> float:
@@ -119,7 +124,29 @@ def estimate_memory_bytes(extent_mm: np.ndarray, spacing: float) -> float:
     return voxels * BYTES_PER_VOXEL
 
 
-def prepare(ct: sitk.Image, mask: sitk.Image, params: Parameters) -> Prepared:
+def prepare(ct: sitk.Image, mask: sitk.Image, *, spacing: float | None = None,
+            margin: float = 5.0, max_memory_gb: float = 4.0) -> Prepared:
+    """Validate, crop to the segment + margin and resample onto an isotropic working grid.
+
+    Parameters
+    ----------
+    ct : SimpleITK.Image
+        Scalar 3-D CT in HU, any orthonormal direction matrix. Not modified.
+    mask : SimpleITK.Image
+        Rough segment of the bone (non-zero inside), any geometry. Not modified.
+    spacing : float or None
+        Isotropic resample spacing d in mm; None: :func:`auto_spacing`.
+    margin : float
+        Margin in mm around the segment's bounding box.
+    max_memory_gb : float
+        Refuse (MemoryLimitError, with a spacing that fits) when the estimate is larger.
+
+    Returns
+    -------
+    Prepared
+        ``ct`` (z, y, x) float32 HU and ``segment`` (z, y, x) bool on the working grid, whose
+        ``grid`` maps grid millimetres (x, y, z) to physical LPS.
+    """
     validate_ct(ct)
     ct_arr_view = sitk.GetArrayViewFromImage(ct)
     if _looks_like_labelmap(ct_arr_view):
@@ -140,20 +167,20 @@ def prepare(ct: sitk.Image, mask: sitk.Image, params: Parameters) -> Prepared:
             "scan, so a closed surface would invent the missing part. Use a CT that contains the whole "
             "bone, or crop the segment away from the volume border.")
     spacing_ct = np.array(ct.GetSpacing())
-    margin_vox = np.ceil(params.margin / spacing_ct).astype(int) + 1
+    margin_vox = np.ceil(margin / spacing_ct).astype(int) + 1
     lo_c = np.maximum(lo - margin_vox, 0)
     hi_c = np.minimum(hi + margin_vox, size - 1)
     crop_size = hi_c - lo_c + 1
 
-    d = params.spacing if params.spacing else auto_spacing(ct)
+    d = spacing if spacing else auto_spacing(ct)
     extent_mm = (crop_size - 1) * spacing_ct
     need = estimate_memory_bytes(extent_mm, d)
-    limit = params.max_memory_gb * 1024 ** 3
+    limit = max_memory_gb * 1024 ** 3
     if need > limit:
         fit = d * (need / limit) ** (1.0 / 3.0)
         raise MemoryLimitError(
             f"Resampling the {extent_mm[0]:.0f} x {extent_mm[1]:.0f} x {extent_mm[2]:.0f} mm region at "
-            f"{d:g} mm would need about {need / 1024 ** 3:.1f} GB (limit {params.max_memory_gb:g} GB): "
+            f"{d:g} mm would need about {need / 1024 ** 3:.1f} GB (limit {max_memory_gb:g} GB): "
             f"use a spacing of at least {np.ceil(fit * 100) / 100:.2f} mm, or raise max_memory_gb.")
 
     ct_crop = sitk.RegionOfInterest(ct, [int(v) for v in crop_size], [int(v) for v in lo_c])
@@ -167,7 +194,7 @@ def prepare(ct: sitk.Image, mask: sitk.Image, params: Parameters) -> Prepared:
     ref.SetDirection(direction.ravel().tolist())
     ct_f = sitk.Cast(ct_crop, sitk.sitkFloat32)
     # B-spline interpolation (paper §2.1): thick slices become isotropic without stair steps.
-    ct_res = sitk.Resample(ct_f, ref, sitk.Transform(), sitk.sitkBSpline, -1000.0, sitk.sitkFloat32)
+    ct_res = sitk.Resample(ct_f, ref, sitk.Transform(), sitk.sitkBSpline, OUTSIDE_HU, sitk.sitkFloat32)
     seg_res = sitk.Resample(seg_crop, ref, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
     grid = Grid(origin=origin, direction=direction, spacing=float(d),
                 shape_zyx=tuple(int(v) for v in reversed(new_size)))

@@ -25,9 +25,9 @@ from typing import Optional
 import numpy as np
 from scipy import ndimage
 
-from .mesh import Surface, enclosed_volume, from_polydata
-from .params import Parameters
-from .prepare import Prepared, prepare
+from BoneWatertightLib.mesh import Surface, enclosed_volume, from_polydata
+from BoneWatertightLib.params import Parameters
+from BoneWatertightLib.stages.prepare import Prepared, prepare
 
 # Slicer's default closed-surface smoothing factor and the iteration count it uses.
 SLICER_SMOOTHING_FACTOR = 0.5
@@ -35,7 +35,9 @@ SLICER_SINC_ITERATIONS = 20
 
 
 def _prepared(ct, mask, params: Optional[Parameters]) -> Prepared:
-    return prepare(ct, mask, (params or Parameters()).validate())
+    params = (params or Parameters()).validate()
+    return prepare(ct, mask, spacing=params.spacing, margin=params.margin,
+                   max_memory_gb=params.max_memory_gb)
 
 
 def threshold_mask(prep: Prepared, params: Parameters) -> np.ndarray:

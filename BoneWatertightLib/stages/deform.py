@@ -23,83 +23,62 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy import ndimage
-from scipy.sparse.linalg import cg
 from scipy.spatial import cKDTree
 
-from .checks import find_self_intersections
-from .mesh import face_normals, vertex_normals
-from .params import Parameters
+from ..mesh.operators import laplacian, ring_mean, safe_update, solve_spd, vertex_normals
 
-
-def laplacian(n: int, faces: np.ndarray) -> sp.csr_matrix:
-    """Uniform Laplacian L = I - D^-1 A of the mesh graph (eq. (11))."""
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    e = np.sort(e, axis=1)
-    e = np.unique(e, axis=0)
-    rows = np.concatenate([e[:, 0], e[:, 1]])
-    cols = np.concatenate([e[:, 1], e[:, 0]])
-    adj = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
-    deg = np.asarray(adj.sum(axis=1)).ravel()
-    dinv = sp.diags(1.0 / np.maximum(deg, 1))
-    return (sp.identity(n, format="csr") - dinv @ adj).tocsr()
-
-
-def ring_mean(avg: sp.csr_matrix, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Weighted mean of ``values`` over each vertex's 1-ring (``avg`` = D^-1 A); 0 where no
-    neighbour has weight."""
-    cnt = avg @ weights
-    return np.where(cnt > 0, (avg @ (weights * values)) / np.maximum(cnt, 1e-12), 0.0)
-
-
-def sample_field(field_zyx: np.ndarray, points_grid_mm: np.ndarray, spacing: float, order: int = 1,
-                 cval: float = 0.0) -> np.ndarray:
-    coords = (points_grid_mm[:, ::-1] / spacing).T
-    return ndimage.map_coordinates(field_zyx, coords, order=order, mode="constant", cval=cval)
-
-
-def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int = 8,
-                intersections: bool = True):
-    """Local back-off: vertices of triangles that a step would flip (or, with ``intersections``,
-    make intersect) keep their old position. ``old`` must be free of both.
-    Returns (vertices, ok, number of bad faces)."""
-    new = new.copy()
-    fn_before = face_normals(old, faces)
-    bad_faces = 0
-    for _ in range(rounds):
-        bad = np.einsum("ij,ij->i", fn_before, face_normals(new, faces)) < 0.0
-        if not bad.any():
-            if not intersections:
-                return new, True, 0
-            pairs = find_self_intersections(new, faces)
-            if len(pairs) == 0:
-                return new, True, 0
-            bad[np.unique(pairs)] = True
-        bad_faces = int(bad.sum())
-        idx = np.unique(faces[bad])
-        new[idx] = old[idx]
-    return new, False, bad_faces
-
-
-def solve_spd(A, rhs, x0):
-    """Three CG solves (one per coordinate), Jacobi-preconditioned, warm-started."""
-    precond = sp.diags(1.0 / A.diagonal())
-    out = np.empty_like(x0)
-    for c in range(3):
-        out[:, c], _ = cg(A, rhs[:, c], x0=x0[:, c], rtol=1e-7, maxiter=500, M=precond)
-    return out
+# Candidate constraint points per search ball (nearest to the ball's centre).
+SEARCH_NEIGHBOURS = 8
+# A match whose normal step differs from its 1-ring's mean by more than this many d* is noise.
+SPIKE_TOLERANCE = 0.5
+# Progress stalls when the mean move is below this many d*: alpha and beta halve...
+STALL_MOVE = 0.05
+# ...but never below this fraction of their start values.
+MIN_WEIGHT_FRACTION = 0.2
+# Extra full iterations while still moving after N iterations.
+MAX_EXTRA_ITERATIONS = 4
+# The exact self-intersection check runs every this many iterations (and on the last).
+FULL_CHECK_EVERY = 3
+# Global back-off attempts (beta doubled each time) before an iteration is rejected.
+STEP_ATTEMPTS = 3
 
 
 class Deformer:
-    def __init__(self, vertices, faces, constraints, inside, params: Parameters, edge_length: float):
-        """``inside(points) -> bool array``: whether points lie inside the target bone (decides
-        the search direction)."""
+    """Iterative Laplacian deformation of a closed mesh onto constraint points (eq. (15)).
+
+    Parameters
+    ----------
+    vertices : (n, 3) float array
+        M0's vertices, x-y-z grid millimetres.
+    faces : (m, 3) int array
+    constraints : (k, 3) float array
+        B*, x-y-z grid millimetres.
+    inside : callable
+        ``inside(points (j, 3)) -> (j,) bool``: whether points lie inside the target bone
+        (decides the search direction).
+    edge_length : float
+        d* in mm: the unit of ``search_radius`` and ``search_offset``.
+    iterations : int
+        N.
+    alpha, beta : float
+        Start weights of the smoothness and the step-damping (previous-iterate) terms.
+    search_radius, search_offset : float
+        Radius and centre offset |delta| of the directional search, in units of d*.
+    """
+
+    def __init__(self, vertices, faces, constraints, inside, edge_length: float, *,
+                 iterations: int = 8, alpha: float = 1.0, beta: float = 1.0,
+                 search_radius: float = 1.5, search_offset: float = 0.75):
         self.v = np.array(vertices, dtype=np.float64)
         self.f = np.asarray(faces)
         self.tree = cKDTree(constraints)
         self.constraints = constraints
         self.inside = inside
-        self.p = params
+        self.iterations = iterations
+        self.alpha = alpha
+        self.beta = beta
+        self.search_radius = search_radius
+        self.search_offset = search_offset
         self.d = edge_length
         n = len(self.v)
         L = laplacian(n, self.f)
@@ -109,13 +88,13 @@ class Deformer:
 
     def match(self, v, normals):
         inside = self.inside(v)
-        delta = self.p.search_offset * self.d
-        radius = self.p.search_radius * self.d
+        delta = self.search_offset * self.d
+        radius = self.search_radius * self.d
         centre = v + np.where(inside[:, None], 1.0, -1.0) * normals * delta
         # psi = of the constraint points within the search ball, the one nearest to v (eq. (7)
         # restricted to the directional search area). Measured on the phantoms: taking the one
         # nearest to v_c instead pushes the surface ~0.3 mm outward.
-        k = 8
+        k = SEARCH_NEIGHBOURS
         dist, idx = self.tree.query(centre, k=k, distance_upper_bound=radius, workers=-1)
         valid = np.isfinite(dist)
         cand = self.constraints[np.where(valid, idx, 0)]  # (n, k, 3)
@@ -132,13 +111,12 @@ class Deformer:
         # a vertex whose step differs from its 1-ring mean by more than half an edge is left
         # free this iteration, so it cannot grow a spike.
         nb = ring_mean(self.avg, along, matched.astype(np.float64))
-        matched &= np.abs(along - nb) <= 0.5 * self.d
+        matched &= np.abs(along - nb) <= SPIKE_TOLERANCE * self.d
         psi = v + along[:, None] * normals
         psi[~matched] = v[~matched]
         return psi, matched, inside
 
     def solve(self, rhs, diag_extra, alpha, beta, x0):
-        n = len(x0)
         A = (alpha * self.LtL + sp.diags(diag_extra + beta)).tocsr()
         return solve_spd(A, rhs, x0)
 
@@ -152,7 +130,7 @@ class Deformer:
         lap_rhs = self.LtL @ v
         rhs = w[:, None] * psi + alpha * (lap_rhs + w[:, None] * (v + c)) + beta * v
         diag_extra = w + alpha * w
-        for attempt in range(3):
+        for attempt in range(STEP_ATTEMPTS):
             new = self.solve(rhs, diag_extra, alpha, beta, v)
             new, ok, bad = safe_update(v, new, self.f, intersections=False)
             if ok and full_check:
@@ -169,16 +147,17 @@ class Deformer:
         return None, matched, bad
 
     def run(self, progress=None):
-        p = self.p
-        alpha, beta = p.alpha, p.beta
-        total = p.iterations
+        """Deform; return the final (n, 3) vertices, verified free of flips and
+        self-intersections. ``self.history`` gets one record per iteration."""
+        alpha, beta = self.alpha, self.beta
+        total = self.iterations
         self.clean_v = self.v.copy()
         extra = 0
         j = 1
         while j <= total + extra:
             last = j >= total + extra
             new, matched, flipped = self.step(min(j, total), total, alpha, beta,
-                                              full_check=last or j % 3 == 0)
+                                              full_check=last or j % FULL_CHECK_EVERY == 0)
             if new is None:
                 self.history.append({"iteration": j, "rejected": True, "flipped": flipped})
                 break
@@ -191,11 +170,11 @@ class Deformer:
                 progress(min(j / max(total, 1), 1.0), f"deformation {j}/{total}")
             # Paper: when two iterations barely differ, lower alpha and beta so the proximity
             # term dominates and local detail comes out.
-            if move.mean() < 0.05 * self.d:
-                alpha = max(alpha * 0.5, 0.2 * p.alpha)
-                beta = max(beta * 0.5, 0.2 * p.beta)
+            if move.mean() < STALL_MOVE * self.d:
+                alpha = max(alpha * 0.5, MIN_WEIGHT_FRACTION * self.alpha)
+                beta = max(beta * 0.5, MIN_WEIGHT_FRACTION * self.beta)
             # Still moving after N iterations: a few more full steps (c = psi - v), at most 4.
-            if j == total + extra and move.mean() > 0.05 * self.d and extra < 4:
+            if j == total + extra and move.mean() > STALL_MOVE * self.d and extra < MAX_EXTRA_ITERATIONS:
                 extra += 1
             j += 1
         if not np.array_equal(self.clean_v, self.v):

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import SimpleITK as sitk
 
-from .errors import EmptySegmentError, ThresholdError
+from ..errors import EmptySegmentError, ThresholdError
 
 HT_FRACTION = 0.08
 H0_FRACTION = 0.19

@@ -20,7 +20,7 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
 
-from .errors import SurfaceCheckError
+from ..errors import SurfaceCheckError
 
 # Relative area below which a face counts as degenerate (times the squared mean edge length).
 DEGENERATE_EPS = 1e-10

@@ -14,15 +14,70 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .deform import laplacian, ring_mean, safe_update, sample_field, solve_spd
-from .mesh import vertex_normals
+from ..mesh.operators import (laplacian, ring_mean, safe_update, sample_field, solve_spd,
+                              vertex_normals)
+
+# Largest move along the normal (mm).
+MAX_SHIFT_MM = 1.5
+# Least peak - valley contrast (HU) for a profile to give an edge.
+MIN_CONTRAST_HU = 150.0
+# Weights of the regularised step: Laplacian smoothness and damping toward the current surface.
+REFINE_ALPHA = 0.3
+REFINE_BETA = 0.05
+# Refinement passes (vertices held back get another chance once their neighbours moved).
+REFINE_PASSES = 3
+# Rounds of "verify, re-refine the vertices the exact check put back".
+VERIFY_ROUNDS = 3
+# Profile along the normal: from PROFILE_RANGE_MM[0] (inside) to [1] (outside), step in mm.
+PROFILE_RANGE_MM = (-3.5, 2.5)
+PROFILE_STEP_MM = 0.1
+# The bone peak is searched up to this far outside the vertex (mm).
+PEAK_REACH_MM = 0.5
+# The valley is the minimum up to VALLEY_REACH_MM beyond the peak, and at least
+# VALLEY_MIN_REACH_MM outside the vertex.
+VALLEY_REACH_MM = 2.0
+VALLEY_MIN_REACH_MM = 1.5
+# Value of profile samples outside the grid (air).
+OUTSIDE_HU = -1000.0
+# A vertex whose shift differs from its 1-ring's mean by more than
+# max(OUTLIER_MM, OUTLIER_VOXELS * spacing) gets no target.
+OUTLIER_MM = 0.4
+OUTLIER_VOXELS = 0.8
 
 
-def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_contrast=150.0,
-                    alpha=0.3, beta=0.05, passes=3, edge_level=0.5):
-    """Repeat :func:`refine_pass` (vertices held back by the back-off get another chance once
-    their neighbours have moved). Returns (vertices, total shift, fraction refined); the
-    vertices are verified free of flips and self-intersections against the input surface."""
+def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
+                    max_shift=MAX_SHIFT_MM, min_contrast=MIN_CONTRAST_HU, alpha=REFINE_ALPHA,
+                    beta=REFINE_BETA, passes=REFINE_PASSES):
+    """Move each vertex along its normal to the CT profile's edge at ``edge_level``.
+
+    Repeats :func:`refine_pass` (vertices held back by the back-off get another chance once
+    their neighbours have moved); the result is verified free of flips and self-intersections
+    against the input surface.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float64 array
+        x-y-z grid millimetres; an outward, intersection-free closed surface.
+    faces : (m, 3) int array
+    ct_smooth : (z, y, x) float array
+        The lightly smoothed CT (HU) on the working grid.
+    spacing : float
+        Voxel size in mm.
+    ht : float
+        HT in HU: a profile whose peak is below it gives no edge.
+    edge_level : float
+        Where between the outside valley (0) and the bone peak (1) the edge sits.
+    max_shift, min_contrast, alpha, beta, passes
+        See the module constants.
+
+    Returns
+    -------
+    vertices : (n, 3) float64 array
+    shift : (n,) float64 array
+        Signed move along the input's vertex normals (mm, outward positive).
+    fraction : float
+        Fraction of vertices whose profile had an edge (last pass).
+    """
     v = vertices
     frac = 0.0
     L = laplacian(len(vertices), faces)
@@ -36,7 +91,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_
     # input surface. Vertices it puts back get another pass (they would stand out as spikes
     # among refined neighbours), then the result is verified again; at most three rounds.
     clean = vertices
-    for _ in range(3):
+    for _ in range(VERIFY_ROUNDS):
         checked, ok, _ = safe_update(clean, v, faces)
         if not ok:
             v = clean
@@ -56,25 +111,26 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_
     return v, np.einsum("ij,ij->i", v - vertices, n), frac
 
 
-def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_contrast=150.0,
-                alpha=0.3, beta=0.05, ops=None, edge_level=0.5):
+def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
+                min_contrast=MIN_CONTRAST_HU, alpha=REFINE_ALPHA, beta=REFINE_BETA, ops=None,
+                edge_level=0.6):
     """Return (new vertices, per-vertex shift along the normal, fraction refined, ok).
 
     The half-maximum points are soft targets of one regularised Laplacian step (as in the
     deformation) followed by the local back-off, so the result never folds or self-intersects."""
     n = vertex_normals(vertices, faces)
-    step = 0.1
-    t = np.arange(-3.5, 2.5 + 1e-9, step)
+    step = PROFILE_STEP_MM
+    t = np.arange(PROFILE_RANGE_MM[0], PROFILE_RANGE_MM[1] + 1e-9, step)
     pts = vertices[:, None, :] + t[None, :, None] * n[:, None, :]
-    prof = sample_field(ct_smooth, pts.reshape(-1, 3), spacing, order=1, cval=-1000.0).reshape(len(vertices), len(t))
-    inner = t <= 0.5
+    prof = sample_field(ct_smooth, pts.reshape(-1, 3), spacing, order=1, cval=OUTSIDE_HU).reshape(len(vertices), len(t))
+    inner = t <= PEAK_REACH_MM
     i_peak = np.argmax(np.where(inner[None, :], prof, -np.inf), axis=1)
     peak = prof[np.arange(len(prof)), i_peak]
     # Valley: the lowest value within 2 mm outside the peak (stops before a neighbour's cortex).
     cols = np.arange(len(t))[None, :]
     # The window always reaches 1.5 mm outside the vertex, so a flat interior (peak deep inside)
     # still sees the soft tissue; a neighbour's cortex beyond the gap never lowers the minimum.
-    reach = np.maximum(t[i_peak] + 2.0, 1.5)
+    reach = np.maximum(t[i_peak] + VALLEY_REACH_MM, VALLEY_MIN_REACH_MM)
     outside = (cols > i_peak[:, None]) & (t[None, :] <= reach[:, None])
     valley = np.min(np.where(outside, prof, np.inf), axis=1)
     level = valley + edge_level * (peak - valley)
@@ -95,7 +151,7 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=1.5, min_cont
     LtL, avg = ops
     # A vertex whose edge disagrees with its neighbours' (noise, a pore at the surface, a
     # grazing profile) gets no target: the Laplacian term carries it with its neighbours.
-    w[np.abs(shift - ring_mean(avg, shift, w)) > max(0.4, 0.8 * spacing)] = 0.0
+    w[np.abs(shift - ring_mean(avg, shift, w)) > max(OUTLIER_MM, OUTLIER_VOXELS * spacing)] = 0.0
     targets = vertices + shift[:, None] * n
     A = (alpha * LtL + sp.diags(w + beta)).tocsr()
     rhs = w[:, None] * targets + alpha * (LtL @ vertices) + beta * vertices

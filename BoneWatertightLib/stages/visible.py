@@ -11,7 +11,7 @@ the bone's size and of the units.
 
 Viewpoints: the 6 directions +/- of the principal axes of the points (PCA), then the 8 diagonals and
 the 12 edge directions of that frame, each at ``view_distance`` times the bounding radius from the
-centroid. Views are added until ``params.views`` are used or the union stops growing (< 0.5 %).
+centroid. Views are added until ``views`` are used or the union stops growing (< 0.5 %).
 Only boundary voxels are fed to the hull: interior voxels are hidden behind them (measured in the
 tests: the visible set is the same).
 """
@@ -21,11 +21,34 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from .params import Parameters
+# Most points fed to the hull (the surface voxels are thinned on a lattice beyond this).
+MAX_HULL_POINTS = 60000
+# Views stop once two successive views each add fewer than this fraction of new points
+# (checked from the 6th view on).
+MIN_VIEW_GAIN = 0.005
+MIN_VIEWS_BEFORE_STOP = 6
+# Isolated-point cleaning: a visible point needs this many visible neighbours within
+# CLEAN_RADIUS_VOXELS voxels (a surface patch has ~12).
+CLEAN_MIN_NEIGHBOURS = 4
+CLEAN_RADIUS_VOXELS = 2.01
 
 
 def hpr_visible(points: np.ndarray, viewpoint: np.ndarray, log_radius: float) -> np.ndarray:
-    """Indices of points visible from viewpoint (spherical flip + convex hull)."""
+    """Indices of points visible from viewpoint (spherical flip + convex hull, eq. (1)).
+
+    Parameters
+    ----------
+    points : (n, 3) float array
+        x-y-z points (any length unit; the flip is scale-free).
+    viewpoint : (3,) float array
+        O, in the same frame.
+    log_radius : float
+        R = 10**log_radius times the farthest point's distance from O.
+
+    Returns
+    -------
+    (k,) int array of indices into ``points``
+    """
     x = points - viewpoint
     norm = np.linalg.norm(x, axis=1)
     scale = norm.max()
@@ -59,7 +82,7 @@ def view_directions(points: np.ndarray) -> np.ndarray:
     return np.array(dirs)
 
 
-def thin_points(points: np.ndarray, spacing: float, max_points: int = 60000) -> np.ndarray:
+def thin_points(points: np.ndarray, spacing: float, max_points: int = MAX_HULL_POINTS) -> np.ndarray:
     """Indices of a lattice-strided subset with at most ~max_points (surface voxels thin out as
     stride^2). Poisson at depth 7 needs far fewer points than a 0.5 mm surface has, and the
     HT boundary points keep the deformation's constraints dense."""
@@ -74,11 +97,31 @@ def thin_points(points: np.ndarray, spacing: float, max_points: int = 60000) -> 
     return keep
 
 
-def visible_points(points: np.ndarray, params: Parameters, spacing: float,
+def visible_points(points: np.ndarray, spacing: float, *, views: int = 14,
+                   view_distance: float = 20.0, log_radius: float = 3.6,
                    progress=None) -> tuple[np.ndarray, dict]:
     """Union of the points visible from the viewpoints, cleaned of isolated border noise.
 
-    Returns (indices into points, info)."""
+    Parameters
+    ----------
+    points : (n, 3) float array
+        Boundary-voxel centres, x-y-z grid millimetres.
+    spacing : float
+        Voxel size in mm (lattice of ``points``).
+    views : int
+        Most viewpoints used (PCA axes first, see :func:`view_directions`).
+    view_distance : float
+        Viewpoint distance from the centroid, in bounding radii.
+    log_radius : float
+        Flip radius exponent, see :func:`hpr_visible`.
+    progress : callable, optional
+
+    Returns
+    -------
+    indices : (k,) int array into ``points``
+    info : dict
+        Per-view counts for the report.
+    """
     sub = thin_points(points, spacing)
     all_points, points = points, points[sub]
     centroid = points.mean(axis=0)
@@ -87,26 +130,26 @@ def visible_points(points: np.ndarray, params: Parameters, spacing: float,
     seen = np.zeros(len(points), dtype=bool)
     per_view = []
     small_gain = 0
-    for k, direction in enumerate(dirs[: params.views]):
-        vp = centroid + direction * params.view_distance * bound
-        idx = hpr_visible(points, vp, params.log_radius)
+    for k, direction in enumerate(dirs[:views]):
+        vp = centroid + direction * view_distance * bound
+        idx = hpr_visible(points, vp, log_radius)
         before = int(seen.sum())
         seen[idx] = True
         gain = int(seen.sum()) - before
         per_view.append({"view": k, "visible": int(len(idx)), "new": gain})
         if progress:
-            progress((k + 1) / params.views, f"view {k + 1}")
-        if k >= 5:
-            small_gain = small_gain + 1 if gain < 0.005 * seen.sum() else 0
+            progress((k + 1) / views, f"view {k + 1}")
+        if k >= MIN_VIEWS_BEFORE_STOP - 1:
+            small_gain = small_gain + 1 if gain < MIN_VIEW_GAIN * seen.sum() else 0
             if small_gain >= 2:
                 break
     vis = np.flatnonzero(seen)
     # Patch borders (grazing rays) pick up isolated points of inner layers: keep points with
     # enough visible neighbours within 2 voxels (a surface patch has ~12 of them).
     tree = cKDTree(points[vis])
-    radius = 2.01 * spacing * max(1.0, np.sqrt(len(all_points) / max(len(points), 1)))
+    radius = CLEAN_RADIUS_VOXELS * spacing * max(1.0, np.sqrt(len(all_points) / max(len(points), 1)))
     counts = tree.query_ball_point(points[vis], r=radius, return_length=True, workers=-1)
-    clean = sub[vis[counts >= 4]]
+    clean = sub[vis[counts >= CLEAN_MIN_NEIGHBOURS]]
     info = {"views_used": len(per_view), "per_view": per_view, "candidates": int(len(points)),
             "visible_raw": int(len(vis)),
             "visible": int(len(clean)), "removed_isolated": int(len(vis) - len(clean))}

@@ -15,18 +15,18 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Optional
 
-from . import io as bwio
-from .cli import (EXIT_CANCELLED, EXIT_DEPENDENCY, EXIT_FAILED, EXIT_INPUT, EXIT_OK,
-                  exit_code_for, fill_template, one_line, reconstruct_and_write, to_json)
-from .errors import DependencyError, InputError
-from .params import Parameters, preset
+from ..errors import (EXIT_CODES, EXIT_FAILED, EXIT_INTERNAL, EXIT_OK, DependencyError,
+                      InputError, exit_code_for, one_line)
+from ..io import files as bwfiles
+from ..params import preset_name
+from . import run
+from .options import make_parameters, parameter_overrides, parameters_from_args
 
 CT_NAMES = ("ct.nrrd", "ct.nhdr", "ct.nii.gz", "ct.nii", "ct.mha", "ct.mhd")
 LABEL_MAP_PREFIXES = ("seg.", "labels.", "mask.")
 SUMMARY_COLUMNS = ("case", "label", "status", "exit_code", "n_vertices", "n_faces", "checks_ok",
                    "distance_mean_mm", "distance_p95_mm", "seconds", "out", "message")
-STATUS = {EXIT_OK: "ok", EXIT_INPUT: "bad input", EXIT_FAILED: "failed",
-          EXIT_DEPENDENCY: "missing dependency", EXIT_CANCELLED: "cancelled"}
+STATUS = {**EXIT_CODES, EXIT_OK: "ok", EXIT_FAILED: "failed", EXIT_INTERNAL: "error"}
 
 
 # ----------------------------------------------------------------------------------------
@@ -121,7 +121,11 @@ def cases_from_folder(folder: str, labels: list, out_template: str) -> list:
 # one case (runs in a worker process or on a Dask worker)
 
 def run_task(task: dict, common: dict) -> dict:
-    """Run one case and return its summary row; never raises for a failed case."""
+    """Run one case and return its summary row; never raises for a failed case.
+
+    Runs in a worker process or on a Dask worker: everything it needs comes in ``task`` and
+    ``common`` (plain, picklable values).
+    """
     t0 = time.perf_counter()
     row = {c: "" for c in SUMMARY_COLUMNS}
     row.update(case=task["case"], label=task["label"], out=task.get("out", ""))
@@ -135,43 +139,25 @@ def run_task(task: dict, common: dict) -> dict:
             sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(int(threads))
         params = make_parameters(task.get("preset") or common.get("preset"),
                                  common.get("overrides", {}))
-        ct = bwio.read_ct(task["ct"])
-        mask, name = bwio.read_segment(task["seg"], task["label"])
-        out = fill_template(task["out"], name, task["case"])
-        if bwio._extension(out) not in bwio.SURFACE_EXTENSIONS:
-            raise InputError(f"output {out} must end in one of "
-                             + ", ".join(bwio.SURFACE_EXTENSIONS))
-        intermediates = None
-        if common.get("intermediates"):
-            intermediates = fill_template(common["intermediates"], name, task["case"])
-        report = reconstruct_and_write(
-            ct, mask, name, out, params, coordinate_system=common.get("coordinate_system", "LPS"),
+        intermediates = common.get("intermediates")
+        report = run.run_files(
+            task["ct"], task["seg"], task["label"], task["out"], params, case=task["case"],
+            coordinate_system=common.get("coordinate_system", "LPS"),
             intermediates_dir=intermediates,
-            inputs={"ct": os.path.abspath(task["ct"]), "seg": os.path.abspath(task["seg"]),
-                    "label": task["label"], "case": task["case"],
-                    "preset": task.get("preset") or common.get("preset")})
-        report["timings_s"]["total"] = time.perf_counter() - t0
+            inputs={"preset": task.get("preset") or common.get("preset")})
         if common.get("report"):
-            path = fill_template(common["report"], name, task["case"])
-            os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-            bwio.write_text(to_json(report), path)
-        dist = report["distance_to_constraints_mm"]
-        row.update(status="ok", exit_code=EXIT_OK, out=report["output"]["path"],
-                   n_vertices=report["output"]["n_vertices"],
-                   n_faces=report["output"]["n_faces"],
-                   checks_ok=bool((report.get("checks") or {}).get("ok")),
-                   distance_mean_mm=_fmt(dist.get("mean")), distance_p95_mm=_fmt(dist.get("p95")))
+            run.write_report(report, run.fill_template(common["report"], report.segment_name,
+                                                       task["case"]))
+        dist = report.distance_to_constraints_mm
+        row.update(status="ok", exit_code=EXIT_OK, out=report.output.path,
+                   n_vertices=report.output.n_vertices, n_faces=report.output.n_faces,
+                   checks_ok=bool(report.checks.ok),
+                   distance_mean_mm=_fmt(dist.mean), distance_p95_mm=_fmt(dist.p95))
     except Exception as exc:
         code = exit_code_for(exc)
         row.update(status=STATUS.get(code, "error"), exit_code=code, message=one_line(exc))
     row["seconds"] = f"{time.perf_counter() - t0:.1f}"
     return row
-
-
-def make_parameters(preset_name: Optional[str], overrides: dict) -> Parameters:
-    if preset_name:
-        return preset(preset_name, **overrides).validate()
-    return Parameters().replace(**overrides).validate()
 
 
 def _fmt(value) -> str:
@@ -197,6 +183,7 @@ def run_tasks(tasks: list, common: dict, workers: int = 1, dask_address: Optiona
     if dask_address:
         client_cls, as_done = _dask()
         with client_cls(dask_address) as client:
+            ship_code_to_workers(client)
             futures = {client.submit(run_task, task, common, pure=False): i
                        for i, task in enumerate(tasks)}
             for future in as_done(list(futures)):
@@ -233,8 +220,53 @@ def run_tasks(tasks: list, common: dict, workers: int = 1, dask_address: Optiona
 def _crashed_row(task, exc) -> dict:
     row = {c: "" for c in SUMMARY_COLUMNS}
     row.update(case=task["case"], label=task["label"], out=task.get("out", ""), status="error",
-               exit_code=1, message=f"worker crashed: {one_line(exc)}")
+               exit_code=EXIT_INTERNAL, message=f"worker crashed: {one_line(exc)}")
     return row
+
+
+# Probe run on every Dask worker: can it import the library? (eval is a builtin, so the probe
+# itself needs nothing from this package on the worker.)
+_IMPORT_PROBE = "__import__('importlib.util').util.find_spec('BoneWatertightLib') is not None"
+
+
+def package_zip(folder: str) -> str:
+    """Zip of this package's .py files (BoneWatertightLib/... at the root) in ``folder``."""
+    import zipfile
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    path = os.path.join(folder, "BoneWatertightLib.zip")
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for dirpath, dirnames, filenames in os.walk(root):
+            dirnames[:] = [d for d in dirnames if d != "__pycache__"]
+            for name in sorted(filenames):
+                if name.endswith(".py"):
+                    full = os.path.join(dirpath, name)
+                    zf.write(full, os.path.join("BoneWatertightLib",
+                                                os.path.relpath(full, root)))
+    return path
+
+
+def ship_code_to_workers(client) -> bool:
+    """Make the library importable on every worker of ``client``.
+
+    Workers that have it installed (``pip install <checkout>`` on the worker machines) need
+    nothing. Otherwise the client uploads a zip of its own copy (``client.upload_file``, which
+    also reaches workers that join later) and checks again. Returns True when it uploaded.
+    """
+    found = client.run(eval, _IMPORT_PROBE)
+    if found and all(found.values()):
+        return False
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as folder:
+        client.upload_file(package_zip(folder))
+    found = client.run(eval, _IMPORT_PROBE)
+    missing = [w for w, ok in found.items() if not ok]
+    if missing:
+        raise DependencyError(
+            "The Dask workers cannot import BoneWatertightLib even after uploading it "
+            f"({', '.join(missing)}); install it on the workers: pip install <checkout>.")
+    return True
 
 
 def _dask():
@@ -263,9 +295,7 @@ def summary_table(rows: list, markdown: bool = True) -> str:
 
 
 def run_from_args(args, parser) -> int:
-    """The --cases entry point of the CLI."""
-    from .cli import parameters_from_args
-
+    """The --cases entry point of the command line."""
     if args.ct or args.seg:
         parser.error("--cases replaces --ct/--seg; give the inputs in the cases file or folder")
     if args.picture:
@@ -279,7 +309,7 @@ def run_from_args(args, parser) -> int:
     if args.dask:
         _dask()  # a clear error before any work when dask is missing
     parameters_from_args(args)  # validate the shared options before starting workers
-    overrides = {k[len("param_"):]: v for k, v in vars(args).items() if k.startswith("param_")}
+    overrides = parameter_overrides(args)
     if args.save_intermediates:
         overrides["keep_intermediates"] = True
     if os.path.isdir(args.cases):
@@ -291,7 +321,7 @@ def run_from_args(args, parser) -> int:
     for task in tasks:
         if task.get("preset"):
             try:
-                preset(task["preset"])
+                preset_name(task["preset"])
             except InputError as exc:
                 task["error"] = one_line(exc)
     if args.report and len(tasks) > 1 and "{case}" not in args.report:
@@ -313,9 +343,9 @@ def run_from_args(args, parser) -> int:
 
     rows = run_tasks(tasks, common, workers=args.workers, dask_address=args.dask, on_row=on_row)
     if args.summary:
-        os.makedirs(os.path.dirname(os.path.abspath(args.summary)), exist_ok=True)
         markdown = args.summary.lower().endswith(".md")
-        bwio.write_text(summary_table(rows, markdown=markdown), args.summary)
+        bwfiles.write_text(summary_table(rows, markdown=markdown),
+                           bwfiles.ensure_folder(args.summary))
     n_ok = sum(r["status"] == "ok" for r in rows)
     if not args.quiet:
         print(summary_table(rows, markdown=True), end="")

@@ -14,8 +14,23 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .errors import DependencyError, ReconstructionError
-from .mesh import Surface, enclosed_volume, from_polydata, to_polydata
+from ..errors import DependencyError, ReconstructionError
+from ..mesh.operators import tangential_relax
+from ..mesh.surface import Surface, enclosed_volume, from_polydata, to_polydata
+
+# Sigma (voxels) of the smoothed mask whose gradient gives the oriented normals.
+NORMAL_MASK_SIGMA_VOXELS = 1.5
+# open3d screened Poisson: bounding-box scale of the octree.
+POISSON_SCALE = 1.1
+# Flying edges on a smoothed mask gives mean edges ~REMESH_EDGE_RATIO x the grid step.
+REMESH_EDGE_RATIO = 0.75
+# Grid padding (grid steps) around the Poisson surface when remeshing.
+REMESH_PAD_STEPS = 4
+# Sigma (grid steps) of the occupancy smoothing before contouring.
+REMESH_SMOOTH_SIGMA = 0.8
+# Windowed-sinc relaxation of the contour.
+SINC_ITERATIONS = 15
+SINC_PASS_BAND = 0.1
 
 
 def import_open3d():
@@ -33,8 +48,22 @@ def import_open3d():
 
 
 def mask_normals(mask: np.ndarray, points_grid_mm: np.ndarray, spacing: float) -> np.ndarray:
-    """Outward unit normals at points from the gradient of the smoothed mask."""
-    smooth = ndimage.gaussian_filter(mask.astype(np.float32), sigma=1.5)
+    """Outward unit normals at points from the gradient of the smoothed mask.
+
+    Parameters
+    ----------
+    mask : (z, y, x) bool array
+        The solid bone on the working grid.
+    points_grid_mm : (k, 3) float array
+        x-y-z points in grid millimetres.
+    spacing : float
+        Voxel size in mm.
+
+    Returns
+    -------
+    (k, 3) float64 array of unit x-y-z normals
+    """
+    smooth = ndimage.gaussian_filter(mask.astype(np.float32), sigma=NORMAL_MASK_SIGMA_VOXELS)
     shape_xyz = np.array(mask.shape[::-1])
     idx = np.clip(np.rint(points_grid_mm / spacing).astype(int), 0, shape_xyz - 1)
     # Central differences at the points only (three full-volume gradient arrays cost ~GBs).
@@ -51,7 +80,15 @@ def mask_normals(mask: np.ndarray, points_grid_mm: np.ndarray, spacing: float) -
 
 
 def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int) -> Surface:
-    """Screened Poisson (open3d) on oriented points; the largest connected component."""
+    """Screened Poisson (open3d) on oriented points; the largest connected component.
+
+    Parameters
+    ----------
+    points, normals : (k, 3) float arrays
+        Oriented points (x-y-z, any frame) and their outward unit normals.
+    depth : int
+        Octree depth.
+    """
     o3d = import_open3d()
     pcd = o3d.geometry.PointCloud()
     pcd.points = o3d.utility.Vector3dVector(points)
@@ -59,7 +96,7 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int) -> Surf
     # n_threads=-1 is ~10x slower than 1 thread here (thread oversubscription): measured.
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh, _density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            pcd, depth=depth, scale=1.1, linear_fit=False, n_threads=1)
+            pcd, depth=depth, scale=POISSON_SCALE, linear_fit=False, n_threads=1)
     tri = np.asarray(mesh.triangles)
     if len(tri) == 0:
         raise ReconstructionError(
@@ -74,14 +111,14 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int) -> Surf
     return Surface(verts[used], inv.reshape(-1, 3))
 
 
-def remesh(surface: Surface, edge_length: float, smooth_iterations: int = 15) -> Surface:
+def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_ITERATIONS) -> Surface:
     """Closed, manifold, near-uniform remesh of a (roughly closed) surface through a voxel grid."""
     import vtk
     from vtk.util import numpy_support as ns
 
-    h = edge_length / 0.75  # flying edges on a smoothed mask gives mean edges ~0.75 h
-    lo = surface.vertices.min(axis=0) - 4 * h
-    hi = surface.vertices.max(axis=0) + 4 * h
+    h = edge_length / REMESH_EDGE_RATIO
+    lo = surface.vertices.min(axis=0) - REMESH_PAD_STEPS * h
+    hi = surface.vertices.max(axis=0) + REMESH_PAD_STEPS * h
     dims = np.ceil((hi - lo) / h).astype(int) + 1
     image = vtk.vtkImageData()
     image.SetOrigin(*lo)
@@ -111,12 +148,25 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = 15) ->
         sizes[0] = 0
         occ = lab == int(np.argmax(sizes))
     occ = ndimage.binary_fill_holes(occ)
-    field = ndimage.gaussian_filter(occ.astype(np.float32), sigma=0.8)
+    field = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
     return contour(field, lo, h, 0.5, smooth_iterations)
 
 
-def contour(field_zyx: np.ndarray, origin, h: float, level: float, smooth_iterations: int = 15) -> Surface:
-    """Largest closed isosurface of a scalar field (z-y-x array on a grid of spacing h at origin)."""
+def contour(field_zyx: np.ndarray, origin, h: float, level: float,
+            smooth_iterations: int = SINC_ITERATIONS) -> Surface:
+    """Largest closed isosurface of a scalar field.
+
+    Parameters
+    ----------
+    field_zyx : (z, y, x) float array
+        On an isotropic grid of step ``h`` whose voxel (0, 0, 0) is at ``origin`` (x, y, z).
+    origin : sequence of 3 floats
+    h : float
+    level : float
+        Iso-value.
+    smooth_iterations : int
+        Windowed-sinc iterations (0: none).
+    """
     import vtk
     from vtk.util import numpy_support as ns
 
@@ -144,7 +194,7 @@ def contour(field_zyx: np.ndarray, origin, h: float, level: float, smooth_iterat
         sinc = vtk.vtkWindowedSincPolyDataFilter()
         sinc.SetInputConnection(clean.GetOutputPort())
         sinc.SetNumberOfIterations(smooth_iterations)
-        sinc.SetPassBand(0.1)
+        sinc.SetPassBand(SINC_PASS_BAND)
         sinc.BoundarySmoothingOff()
         sinc.FeatureEdgeSmoothingOff()
         sinc.NonManifoldSmoothingOn()
@@ -170,24 +220,23 @@ def drop_degenerate(surface: Surface) -> Surface:
     return Surface(surface.vertices[used], inv.reshape(-1, 3), surface.coordinate_system)
 
 
-def initial_surface(points: np.ndarray, normals: np.ndarray, depth: int, edge_length: float) -> tuple[Surface, Surface]:
-    """(M0 remeshed, raw Poisson surface)."""
+def initial_surface(points: np.ndarray, normals: np.ndarray, depth: int,
+                    edge_length: float) -> tuple[Surface, Surface]:
+    """M0: Poisson on the oriented visible points, remeshed closed and near-uniform.
+
+    Parameters
+    ----------
+    points, normals : (k, 3) float arrays
+        Visible points in grid millimetres (x-y-z) and their outward unit normals.
+    depth : int
+        Poisson octree depth.
+    edge_length : float
+        Target mean edge length d* in mm.
+
+    Returns
+    -------
+    (M0, raw Poisson surface), both in grid millimetres
+    """
     raw = poisson_surface(points, normals, depth)
     return remesh(raw, edge_length), raw
 
-
-def tangential_relax(vertices: np.ndarray, faces: np.ndarray, iterations: int = 5,
-                     weight: float = 0.5) -> np.ndarray:
-    """Even out marching-cubes slivers: move each vertex toward its neighbours' centroid within
-    its tangent plane, so the shape stays and the triangles become near-equilateral."""
-    from .deform import laplacian
-    from .mesh import vertex_normals
-
-    L = laplacian(len(vertices), faces)
-    v = vertices.copy()
-    for _ in range(iterations):
-        n = vertex_normals(v, faces)
-        u = -(L @ v)  # centroid of the 1-ring minus v
-        u -= np.einsum("ij,ij->i", u, n)[:, None] * n
-        v += weight * u
-    return v

@@ -1,0 +1,243 @@
+"""Command line: ``bonewatertight`` (or ``python -m BoneWatertightLib``) ``--ct CT --seg SEG
+--label LABEL --out OUT``.
+
+This module only parses the arguments and shows progress; the work is done by the run service
+(:mod:`.run`) and, for ``--cases``, the batch runner (:mod:`.batch`). Exit codes are those of
+:mod:`BoneWatertightLib.errors`: 0 success, 2 bad input or usage (the message says what to
+change), 3 reconstruction failed (batch: some case failed), 4 missing dependency, 5 an output
+could not be written (or another OS error), 130 cancelled, 1 internal error. Errors are one line
+``error: <message>`` on stderr. An output file is either complete or not written at all.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from typing import Optional
+
+from ..errors import (EXIT_CANCELLED, EXIT_INPUT, EXIT_INTERNAL, EXIT_OK, CancelledError,
+                      InputError, exit_code_for, one_line)
+from ..io import images, segmentations
+from ..report import case_summary_line
+from . import run
+from .options import (Parser, add_io_options, add_parameter_options, add_preset_option,
+                      parameters_from_args)
+
+PROG = "bonewatertight"
+
+
+# ----------------------------------------------------------------------------------------
+# argument parser
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(
+        prog=PROG,
+        description=(
+            "Reconstruct a watertight 2-manifold surface of one bone from a CT and a rough\n"
+            "segment of that bone, by the method of \"Watertight 2-manifold 3D bone surface\n"
+            "model reconstruction from CT images based on visual hyper-spherical mapping\"."),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=_EPILOG,
+    )
+    add_io_options(parser)
+    add_preset_option(parser)
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="Print nothing but errors.")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="Print each stage; tracebacks on internal errors.")
+    batch = parser.add_argument_group("batch (many cases)")
+    batch.add_argument("--cases", metavar="CSV|DIR",
+                       help="Run many cases: a CSV (columns ct,seg,label,out[,preset]) or a "
+                            "folder of case folders (see below).")
+    batch.add_argument("--workers", type=int, default=1, metavar="N",
+                       help="Worker processes for --cases (default 1).")
+    batch.add_argument("--summary", metavar="CSV|MD",
+                       help="Write the batch summary table (.csv, or .md for markdown).")
+    batch.add_argument("--dask", metavar="SCHEDULER",
+                       help="Run the batch on a dask.distributed cluster at this scheduler "
+                            "address (pip install \"dask[distributed]\").")
+    add_parameter_options(parser)
+    return parser
+
+
+_EPILOG = """\
+coordinates:
+  Surfaces are written in physical LPS coordinates (as ITK, SimpleITK) unless --ras is given.
+  The file says which: STL header and PLY/OBJ comment "SPACE=LPS" or "SPACE=RAS", VTP/VTK
+  field data "SPACE" (the convention 3D Slicer reads).
+
+batch folder layout (--cases DIR):
+  DIR/<case>/ct.nrrd | ct.nii.gz | ct.nii | ct.mha | ct.mhd | ct/ (DICOM folder)
+  DIR/<case>/<name>.seg.nrrd      (a 3D Slicer segmentation; preferred when present)
+          or seg.* | labels.* | *_labels.* | mask.*   (a label map; labels.csv value,name
+                                                      beside it allows segment names)
+  Give --label (repeatable) and --out as a template with {case} and {label}, e.g.
+  --out results/{case}_{label}.stl. A CSV (--cases cases.csv) instead lists one surface per
+  row: ct,seg,label,out[,preset]; relative paths are relative to the CSV's folder.
+
+exit codes:
+  0 success, 2 bad input, 3 reconstruction failed (batch: some case failed),
+  4 missing dependency, 5 an output could not be written (or another OS error),
+  130 cancelled, 1 internal error.
+
+example:
+  bonewatertight --ct ct.nrrd --seg bones.seg.nrrd --label femur_left \\
+      --preset femur --out femur_left.stl --report femur_left.json
+"""
+
+
+# ----------------------------------------------------------------------------------------
+# progress
+
+class ProgressBar:
+    """A one-line progress bar on a terminal (\\r updates on stderr); silent otherwise."""
+
+    def __init__(self, stream=None, enabled: Optional[bool] = None, prefix: str = "",
+                 verbose: bool = False):
+        self.stream = stream or sys.stderr
+        self.enabled = (self.stream.isatty() if enabled is None else enabled)
+        self.verbose = verbose
+        self.prefix = prefix
+        self._last = -1.0
+        self._last_message = None
+        self._shown = False
+
+    def __call__(self, fraction: float, message: str = "") -> None:
+        if self.verbose and message and message != self._last_message:
+            if self._shown:
+                self._clear()
+            self.stream.write(f"[{100 * fraction:5.1f}%] {self.prefix}{message}\n")
+            self.stream.flush()
+        self._last_message = message
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        if fraction < 1.0 and now - self._last < 0.1:
+            return
+        self._last = now
+        width = 30
+        filled = int(round(width * min(max(fraction, 0.0), 1.0)))
+        bar = "#" * filled + "." * (width - filled)
+        text = f"\r{self.prefix}[{bar}] {100 * fraction:3.0f}% {message}"
+        self.stream.write(text[:120].ljust(120))
+        self.stream.flush()
+        self._shown = True
+
+    def _clear(self):
+        self.stream.write("\r" + " " * 120 + "\r")
+        self.stream.flush()
+        self._shown = False
+
+    def close(self):
+        if self._shown:
+            self._clear()
+
+
+# ----------------------------------------------------------------------------------------
+# main
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = None
+    try:
+        args = parser.parse_args(argv)
+        if args.quiet and args.verbose:
+            parser.error("--quiet and --verbose exclude each other")
+        if args.cases:
+            from . import batch
+
+            return batch.run_from_args(args, parser)
+        return _run_single(args, parser)
+    except SystemExit as exc:  # --help
+        return exc.code if isinstance(exc.code, int) else EXIT_OK
+    except KeyboardInterrupt:
+        sys.stderr.write("\nerror: cancelled by the user; no output file was written.\n")
+        return EXIT_CANCELLED
+    except Exception as exc:  # one line for the user; the traceback only on request
+        code = exit_code_for(exc)
+        if code == EXIT_INTERNAL and args is not None and args.verbose:
+            import traceback
+
+            traceback.print_exc()
+        internal = code == EXIT_INTERNAL and not isinstance(exc, OSError)
+        prefix = "internal error: " if internal else ""
+        sys.stderr.write(f"error: {prefix}{one_line(exc)}\n")
+        return code
+
+
+def check_single_args(args, parser) -> None:
+    missing = [flag for flag, value in (("--ct", args.ct), ("--seg", args.seg),
+                                        ("--label", args.label), ("--out", args.out)) if not value]
+    if missing:
+        parser.error("missing " + ", ".join(missing))
+    if len(args.label) > 1 and "{label}" not in args.out:
+        parser.error(f"{len(args.label)} labels given but --out has no {{label}} placeholder; "
+                     "use e.g. --out bone_{label}.stl")
+    if len(set(args.label)) != len(args.label):
+        parser.error("the same --label is given twice")
+    for path in [args.out] + ([args.report] if args.report else []):
+        if "{case}" in path:
+            parser.error("{case} is only available with --cases")
+    try:
+        run.check_surface_path(args.out)
+    except InputError as exc:
+        parser.error(str(exc))
+    if args.report and not args.report.lower().endswith(".json"):
+        parser.error("--report must be a .json file")
+    if args.picture and not args.picture.lower().endswith(".png"):
+        parser.error("--picture must be a .png file")
+
+
+def _run_single(args, parser) -> int:
+    check_single_args(args, parser)
+    params = parameters_from_args(args)
+    reconstruct = run.load_reconstruct()
+    system = "RAS" if args.ras else "LPS"
+
+    t0 = time.perf_counter()
+    ct = images.read_ct(args.ct, args.ct_series)
+    segments = [segmentations.read_segment(args.seg, label) for label in args.label]
+    t_read = time.perf_counter() - t0
+
+    outputs = [run.fill_template(args.out, name) for _, name in segments]
+    if len(set(outputs)) != len(outputs):
+        raise InputError("Two labels give the same output file name; use distinct labels.")
+
+    reports, codes = [], []
+    for (mask, name), label, out in zip(segments, args.label, outputs):
+        bar = ProgressBar(enabled=None if not args.quiet else False,
+                          prefix=f"{name}: " if len(segments) > 1 else "",
+                          verbose=args.verbose)
+        inputs = {"ct": os.path.abspath(args.ct), "seg": os.path.abspath(args.seg),
+                  "label": label, "ct_size": list(ct.GetSize()),
+                  "ct_spacing": list(ct.GetSpacing()), "preset": args.preset}
+        picture = run.fill_template(args.picture, name) if args.picture else None
+        if picture and len(segments) > 1 and "{label}" not in args.picture:
+            picture = os.path.splitext(picture)[0] + f"_{run.safe_name(name)}.png"
+        try:
+            report = run.run_case(
+                ct, mask, name, out, params, coordinate_system=system,
+                intermediates_dir=args.save_intermediates, picture=picture, progress=bar,
+                inputs=inputs, read_seconds=t_read / len(segments), reconstruct=reconstruct)
+        except (CancelledError, KeyboardInterrupt):
+            bar.close()
+            raise KeyboardInterrupt from None
+        except Exception as exc:
+            bar.close()
+            code = exit_code_for(exc)
+            if code == EXIT_INTERNAL:
+                raise
+            sys.stderr.write(f"error: {name}: {one_line(exc)}\n")
+            codes.append(code)
+            continue
+        bar.close()
+        reports.append(report)
+        codes.append(EXIT_OK)
+        if not args.quiet:
+            print(case_summary_line(report), flush=True)
+
+    if args.report and reports:
+        run.write_reports(args.report, reports)
+    return max(codes, key=lambda c: (c != 0, c == EXIT_INPUT, c)) if codes else EXIT_OK

@@ -1,0 +1,118 @@
+"""Command-line options shared by every command line, derived from the parameter schema.
+
+``bonewatertight`` (:mod:`.cli`), its ``--cases`` batch and the Slicer batch script
+(``Resources/Scripts/bonewatertight_batch.py``) build their parsers from these functions, so
+their flag names, help texts, ranges and defaults are the same by construction.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from ..errors import InputError
+from ..params import PRESETS, SCHEMA, STAGES, ParamSpec, Parameters, apply_preset
+
+PARAM_DEST_PREFIX = "param_"
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse that reports a usage error as InputError (one line, exit code 2)."""
+
+    def error(self, message):
+        raise InputError(f"{message} (see --help)")
+
+
+def flag_of(spec: ParamSpec) -> str:
+    """``--poisson-depth`` for poisson_depth."""
+    return "--" + spec.name.replace("_", "-")
+
+
+def help_of(spec: ParamSpec) -> str:
+    """The option's help: the schema's text with range, unit, auto meaning and default."""
+    return spec.describe().replace("%", "%%")
+
+
+def _parser_for(spec: ParamSpec):
+    def parse(text):
+        return spec.parse(text)
+    parse.__name__ = spec.kind.__name__  # argparse: "invalid int value: 'many'"
+    return parse
+
+
+def add_parameter_options(parser: argparse.ArgumentParser) -> None:
+    """One option per schema parameter (``--h0``, ``--poisson-depth``, ``--no-refine-edges``...),
+    grouped by pipeline stage. Options left out keep the preset's (or the paper's) value, so
+    their default is SUPPRESS; values are checked by :meth:`Parameters.validate`."""
+    groups = {}
+    for spec in SCHEMA.values():
+        if spec.stage not in groups:
+            groups[spec.stage] = parser.add_argument_group(
+                f"parameters: {STAGES[spec.stage]}")
+        group = groups[spec.stage]
+        dest = PARAM_DEST_PREFIX + spec.name
+        if spec.kind is bool:
+            group.add_argument(flag_of(spec), dest=dest, action=argparse.BooleanOptionalAction,
+                               default=argparse.SUPPRESS, help=help_of(spec))
+        elif spec.choices:
+            group.add_argument(flag_of(spec), dest=dest, choices=spec.choices,
+                               default=argparse.SUPPRESS, help=help_of(spec))
+        else:
+            metavar = spec.kind.__name__.upper() + ("|auto" if spec.allows_auto else "")
+            group.add_argument(flag_of(spec), dest=dest, type=_parser_for(spec),
+                               metavar=metavar, default=argparse.SUPPRESS, help=help_of(spec))
+
+
+def add_io_options(parser: argparse.ArgumentParser) -> None:
+    """Inputs and outputs of one run (``--ct --seg --label --out --ras --report --picture``...)."""
+    io_group = parser.add_argument_group("inputs and outputs")
+    io_group.add_argument("--ct", metavar="CT",
+                          help="CT volume in HU: NRRD, NIfTI, MHA/MHD, ... or a DICOM folder.")
+    io_group.add_argument("--ct-series", metavar="UID",
+                          help="Series instance UID to read when the DICOM folder holds several.")
+    io_group.add_argument("--seg", metavar="SEG",
+                          help="Rough segment: a label map (any geometry) or a 3D Slicer "
+                               ".seg.nrrd.")
+    io_group.add_argument("--label", action="append", metavar="LABEL",
+                          help="Label value or segment name/ID. Repeat for several bones: one "
+                               "surface each, OUT must then contain {label}.")
+    io_group.add_argument("--out", metavar="OUT",
+                          help="Output surface: .stl, .ply, .vtp, .vtk or .obj. {label} is "
+                               "replaced by the segment name (and {case} in a batch).")
+    io_group.add_argument("--ras", action="store_true",
+                          help="Write RAS coordinates (as 3D Slicer) instead of LPS (as ITK). "
+                               "The file header says which.")
+    io_group.add_argument("--report", metavar="JSON",
+                          help="Write a JSON report: checks, timings, distances, parameters.")
+    io_group.add_argument("--save-intermediates", metavar="DIR",
+                          help="Write intermediate results (threshold points as .ply, visible "
+                               "points, M0 as .vtp) into DIR.")
+    io_group.add_argument("--picture", metavar="PNG", help="Render a PNG picture of the result.")
+
+
+def add_preset_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--preset", choices=sorted(PRESETS),
+                        help="Parameter preset (sets only its own thresholds and morphology "
+                             "fields); single parameter options override it.")
+
+
+def parameter_overrides(args: argparse.Namespace) -> dict:
+    """The parameters given on the command line ({name: value})."""
+    return {k[len(PARAM_DEST_PREFIX):]: v for k, v in vars(args).items()
+            if k.startswith(PARAM_DEST_PREFIX)}
+
+
+def make_parameters(preset_name, overrides: dict) -> Parameters:
+    """Validated Parameters: the defaults, the preset's fields, then the overrides."""
+    params = Parameters()
+    if preset_name:
+        params = apply_preset(params, preset_name)
+    return params.replace(**overrides).validate()
+
+
+def parameters_from_args(args: argparse.Namespace) -> Parameters:
+    """Validated Parameters from parsed arguments (``--preset``, the parameter options and
+    ``--save-intermediates``)."""
+    overrides = parameter_overrides(args)
+    if getattr(args, "save_intermediates", None):
+        overrides["keep_intermediates"] = True
+    return make_parameters(getattr(args, "preset", None), overrides)

@@ -1,0 +1,207 @@
+"""Mesh operators shared by the stages: normals, the uniform Laplacian, ring means, the SPD
+solver, the flip/intersection back-off, field sampling and tangential relaxation.
+
+Conventions: ``vertices`` are (n, 3) float64 x-y-z points in millimetres (grid millimetres
+inside the pipeline, i.e. voxel index * spacing in x-y-z order); ``faces`` are (m, 3) int64
+vertex indices, counter-clockwise seen from outside. Volumes sampled by :func:`sample_field`
+are (z, y, x) numpy arrays on an isotropic grid of the given spacing whose voxel (0, 0, 0) is
+at grid millimetre (0, 0, 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy import ndimage
+from scipy.sparse.linalg import cg
+
+from .checks import find_self_intersections
+
+# Conjugate-gradient tolerance (relative residual) and iteration cap of solve_spd.
+CG_RTOL = 1e-7
+CG_MAX_ITERATIONS = 500
+# Rounds of the local back-off in safe_update before it gives up.
+BACKOFF_ROUNDS = 8
+# Tangential relaxation of a fresh contour: iterations and step weight.
+RELAX_ITERATIONS = 5
+RELAX_WEIGHT = 0.5
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray, normalize: bool = True) -> np.ndarray:
+    """Face normals (m, 3); unit length, or twice the triangle area when ``normalize`` is False.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float64 array
+    faces : (m, 3) int array
+    normalize : bool
+    """
+    v0, v1, v2 = (vertices[faces[:, k]] for k in range(3))
+    n = np.cross(v1 - v0, v2 - v0)
+    if normalize:
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        n = n / np.maximum(length, 1e-300)
+    return n
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals, (n, 3) float64, outward for an outward surface."""
+    fn = face_normals(vertices, faces, normalize=False)
+    vn = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(vn, faces[:, k], fn)
+    length = np.linalg.norm(vn, axis=1, keepdims=True)
+    return vn / np.maximum(length, 1e-300)
+
+
+def laplacian(n: int, faces: np.ndarray) -> sp.csr_matrix:
+    """Uniform Laplacian L = I - D^-1 A of the mesh graph (paper eq. (11)).
+
+    Parameters
+    ----------
+    n : int
+        Number of vertices.
+    faces : (m, 3) int array
+
+    Returns
+    -------
+    (n, n) scipy.sparse.csr_matrix
+        ``L @ v`` is each vertex minus the mean of its 1-ring.
+    """
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.sort(e, axis=1)
+    e = np.unique(e, axis=0)
+    rows = np.concatenate([e[:, 0], e[:, 1]])
+    cols = np.concatenate([e[:, 1], e[:, 0]])
+    adj = sp.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    deg = np.asarray(adj.sum(axis=1)).ravel()
+    dinv = sp.diags(1.0 / np.maximum(deg, 1))
+    return (sp.identity(n, format="csr") - dinv @ adj).tocsr()
+
+
+def ring_mean(avg: sp.csr_matrix, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted mean of ``values`` over each vertex's 1-ring; 0 where no neighbour has weight.
+
+    Parameters
+    ----------
+    avg : (n, n) sparse matrix
+        D^-1 A, the 1-ring averaging operator (``I - laplacian(n, faces)``).
+    values, weights : (n,) float arrays
+    """
+    cnt = avg @ weights
+    return np.where(cnt > 0, (avg @ (weights * values)) / np.maximum(cnt, 1e-12), 0.0)
+
+
+def sample_field(field_zyx: np.ndarray, points_grid_mm: np.ndarray, spacing: float, order: int = 1,
+                 cval: float = 0.0) -> np.ndarray:
+    """Interpolate a volume at points.
+
+    Parameters
+    ----------
+    field_zyx : (z, y, x) array
+        Values on an isotropic grid of ``spacing`` mm.
+    points_grid_mm : (k, 3) float array
+        x-y-z points in grid millimetres (voxel index * spacing).
+    spacing : float
+        Voxel size in mm.
+    order : int
+        Spline order of :func:`scipy.ndimage.map_coordinates` (1 = trilinear).
+    cval : float
+        Value outside the grid.
+
+    Returns
+    -------
+    (k,) array of the field's dtype
+    """
+    coords = (points_grid_mm[:, ::-1] / spacing).T
+    return ndimage.map_coordinates(field_zyx, coords, order=order, mode="constant", cval=cval)
+
+
+def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int = BACKOFF_ROUNDS,
+                intersections: bool = True):
+    """Local back-off: vertices of triangles that a step would flip (or, with ``intersections``,
+    make intersect) keep their old position. ``old`` must be free of both.
+
+    Parameters
+    ----------
+    old, new : (n, 3) float64 arrays
+        Vertices before and after the step.
+    faces : (m, 3) int array
+    rounds : int
+        Back-off rounds before giving up.
+    intersections : bool
+        Also run the exact self-intersection test (slower).
+
+    Returns
+    -------
+    vertices : (n, 3) float64 array
+    ok : bool
+        True when the returned vertices are free of flips (and intersections).
+    bad_faces : int
+        Faces still bad when giving up (0 when ``ok``).
+    """
+    new = new.copy()
+    fn_before = face_normals(old, faces)
+    bad_faces = 0
+    for _ in range(rounds):
+        bad = np.einsum("ij,ij->i", fn_before, face_normals(new, faces)) < 0.0
+        if not bad.any():
+            if not intersections:
+                return new, True, 0
+            pairs = find_self_intersections(new, faces)
+            if len(pairs) == 0:
+                return new, True, 0
+            bad[np.unique(pairs)] = True
+        bad_faces = int(bad.sum())
+        idx = np.unique(faces[bad])
+        new[idx] = old[idx]
+    return new, False, bad_faces
+
+
+def solve_spd(A, rhs: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """Solve A X = rhs for a symmetric positive definite A, one CG solve per coordinate.
+
+    Jacobi-preconditioned and warm-started from ``x0``.
+
+    Parameters
+    ----------
+    A : (n, n) sparse matrix, symmetric positive definite
+    rhs, x0 : (n, 3) float64 arrays
+
+    Returns
+    -------
+    (n, 3) float64 array
+    """
+    precond = sp.diags(1.0 / A.diagonal())
+    out = np.empty_like(x0)
+    for c in range(3):
+        out[:, c], _ = cg(A, rhs[:, c], x0=x0[:, c], rtol=CG_RTOL, maxiter=CG_MAX_ITERATIONS,
+                          M=precond)
+    return out
+
+
+def tangential_relax(vertices: np.ndarray, faces: np.ndarray, iterations: int = RELAX_ITERATIONS,
+                     weight: float = RELAX_WEIGHT) -> np.ndarray:
+    """Even out marching-cubes slivers: move each vertex toward its neighbours' centroid within
+    its tangent plane, so the shape stays and the triangles become near-equilateral.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float64 array
+    faces : (m, 3) int array
+    iterations : int
+    weight : float
+        Fraction of the tangential step taken per iteration.
+
+    Returns
+    -------
+    (n, 3) float64 array
+    """
+    L = laplacian(len(vertices), faces)
+    v = vertices.copy()
+    for _ in range(iterations):
+        n = vertex_normals(v, faces)
+        u = -(L @ v)  # centroid of the 1-ring minus v
+        u -= np.einsum("ij,ij->i", u, n)[:, None] * n
+        v += weight * u
+    return v

@@ -1,0 +1,248 @@
+"""The typed reports of a run, their one summary line and the one (NaN-safe) JSON writer.
+
+Consumers read reports by attribute (``report.timings.total``), so a renamed field fails loudly
+instead of printing null. :func:`to_json` turns any report into JSON with NaN/inf as null.
+
+- :class:`PipelineReport`: what :func:`BoneWatertightLib.pipeline.reconstruct` measured.
+- :class:`CaseReport`: one case run by :mod:`BoneWatertightLib.app.run` (files written, timings).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import types
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+
+@dataclass
+class StageTimes:
+    """Seconds spent in each pipeline stage (``total`` includes everything)."""
+
+    import_open3d: float = 0.0
+    prepare: float = 0.0
+    filter: float = 0.0
+    threshold: float = 0.0
+    visible: float = 0.0
+    poisson: float = 0.0
+    deform: float = 0.0
+    refine: float = 0.0
+    checks: float = 0.0
+    total: float = 0.0
+
+
+@dataclass
+class Counts:
+    """Point and mesh sizes along the pipeline."""
+
+    p_h0_surface_points: int = 0
+    visible_points: int = 0
+    ht_boundary_points: int = 0
+    constraint_points: int = 0
+    poisson_raw_vertices: int = 0
+    m0_vertices: int = 0
+    m0_faces: int = 0
+    vertices: int = 0
+    faces: int = 0
+
+
+@dataclass
+class DistanceSummary:
+    """Statistics of per-vertex distances in mm (``n`` = 0: no finite value)."""
+
+    n: int = 0
+    mean: Optional[float] = None
+    median: Optional[float] = None
+    rms: Optional[float] = None
+    p95: Optional[float] = None
+    max: Optional[float] = None
+
+    @classmethod
+    def of(cls, distances) -> "DistanceSummary":
+        d = np.asarray(distances if distances is not None else [], dtype=np.float64).ravel()
+        d = d[np.isfinite(d)]
+        if d.size == 0:
+            return cls()
+        return cls(n=int(d.size), mean=float(d.mean()), median=float(np.median(d)),
+                   rms=float(np.sqrt(np.mean(d * d))), p95=float(np.percentile(d, 95)),
+                   max=float(d.max()))
+
+
+@dataclass
+class Refinement:
+    """Outcome of the edge refinement stage."""
+
+    applied: bool = False
+    fraction_with_edge: Optional[float] = None
+    mean_shift_mm: Optional[float] = None
+    mean_abs_shift_mm: Optional[float] = None
+
+
+@dataclass
+class PipelineReport:
+    """Everything the pipeline measured for one surface (physical LPS, mm)."""
+
+    version: str
+    parameters: dict
+    input: dict
+    timings: StageTimes
+    threshold: dict
+    counts: Counts
+    visible: dict
+    deformation: list
+    refinement: Refinement
+    checks: object  # BoneWatertightLib.mesh.checks.SurfaceReport
+    distance_to_constraints_mm: DistanceSummary
+    mean_edge_length_mm: float = 0.0
+    area_mm2: float = 0.0
+    volume_mm3: float = 0.0
+    constants: dict = field(default_factory=dict)
+    coordinate_system: str = "LPS"
+    units: str = "mm"
+
+    def to_dict(self) -> dict:
+        return to_plain(self)
+
+
+@dataclass
+class OutputInfo:
+    """The files one case wrote. ``picture`` is None when no picture was made; then
+    ``picture_error`` says why (if one was asked for)."""
+
+    path: str
+    format: str
+    coordinate_system: str
+    n_vertices: int
+    n_faces: int
+    picture: Optional[str] = None
+    picture_error: Optional[str] = None
+    intermediates: list = field(default_factory=list)
+    also: list = field(default_factory=list)
+    report: Optional[str] = None
+
+
+@dataclass
+class CaseTimes:
+    """Seconds of one case: reading, reconstruction (with the pipeline's stages), writing."""
+
+    read: float = 0.0
+    reconstruct: float = 0.0
+    render: float = 0.0
+    write: float = 0.0
+    total: float = 0.0
+    stages: StageTimes = field(default_factory=StageTimes)
+
+
+@dataclass
+class CaseReport:
+    """One case run by the run service: inputs, outputs, checks, distances, timings."""
+
+    inputs: dict
+    output: OutputInfo
+    checks: object  # SurfaceReport
+    distance_to_constraints_mm: DistanceSummary
+    parameters: dict
+    timings_s: CaseTimes
+    pipeline: PipelineReport
+    coordinate_system: str = "LPS"
+    tool: str = "BoneWatertight"
+    version: str = ""
+
+    @property
+    def segment_name(self) -> str:
+        return str(self.inputs.get("segment_name", ""))
+
+    def to_dict(self) -> dict:
+        return to_plain(self)
+
+
+# ----------------------------------------------------------------------------------------
+# named constants
+
+def constants_of(*modules: types.ModuleType) -> dict:
+    """{module name: {CONSTANT: value}} of the module-level UPPER_CASE numbers (and tuples of
+    numbers) of each module: the stages' fixed settings, for the report."""
+    out = {}
+    for module in modules:
+        values = {}
+        for name, value in vars(module).items():
+            if not name.isupper() or name.startswith("_"):
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float, tuple)):
+                continue
+            if isinstance(value, tuple) and not all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+                continue
+            values[name] = list(value) if isinstance(value, tuple) else value
+        out[module.__name__.rsplit(".", 1)[-1]] = values
+    return out
+
+
+# ----------------------------------------------------------------------------------------
+# the one summary line
+
+def summary_line(name: str, checks, distances: DistanceSummary, seconds: Optional[float],
+                 n_vertices: int, n_faces: int, out: Optional[str] = None,
+                 coordinate_system: Optional[str] = None,
+                 picture_error: Optional[str] = None) -> str:
+    """'<name>: V vertices, F faces, checks passed (...), distance ..., T s -> out (LPS)'."""
+    if getattr(checks, "ok", False):
+        genus = getattr(checks, "genus", None)
+        state = ("checks passed (closed, manifold, "
+                 f"{getattr(checks, 'n_components', 1)} component"
+                 + ("" if genus is None else f", genus {genus}") + ")")
+    else:
+        state = "CHECKS FAILED: " + "; ".join(map(str, getattr(checks, "problems", [])))
+    text = f"{name + ': ' if name else ''}{n_vertices} vertices, {n_faces} faces, {state}"
+    if distances.n:
+        text += (f", distance to constraints mean {distances.mean:.2f} / p95 "
+                 f"{distances.p95:.2f} / max {distances.max:.2f} mm")
+    if seconds is not None:
+        text += f", {seconds:.1f} s"
+    if out:
+        text += f" -> {out}" + (f" ({coordinate_system})" if coordinate_system else "")
+    if picture_error:
+        text += f"; no picture: {picture_error}"
+    return text
+
+
+def case_summary_line(report: CaseReport) -> str:
+    """The summary line of a case report."""
+    out = report.output
+    return summary_line(report.segment_name, report.checks, report.distance_to_constraints_mm,
+                        report.timings_s.total, out.n_vertices, out.n_faces, out.path,
+                        out.coordinate_system, out.picture_error)
+
+
+# ----------------------------------------------------------------------------------------
+# JSON
+
+def to_plain(obj):
+    """Plain JSON types (dict, list, str, int, float, bool, None) from reports, numpy values,
+    arrays and dataclasses; NaN and infinities become None."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {str(k): to_plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_plain(obj.tolist())
+    if isinstance(obj, np.generic):
+        return to_plain(obj.item())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    if hasattr(obj, "to_dict"):
+        return to_plain(obj.to_dict())
+    return str(obj)
+
+
+def to_json(obj) -> str:
+    """Indented JSON text of ``obj`` (see :func:`to_plain`); always valid JSON (no NaN)."""
+    return json.dumps(to_plain(obj), indent=2, allow_nan=False) + "\n"
