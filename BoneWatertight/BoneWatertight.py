@@ -1,5 +1,6 @@
 import logging
 import os
+import pathlib
 import sys
 import time
 from typing import Annotated, Optional
@@ -34,7 +35,12 @@ def _ensureLibraryOnPath():
 
 _ensureLibraryOnPath()
 
-PRESET_NAMES = ["custom", "femur", "hip", "vertebra"]
+# The library's parameter schema (stdlib-only import): ranges, defaults, labels and help of every
+# algorithm parameter are declared there once and applied here to the parameter node and widgets.
+from BoneWatertightLib.params import PRESETS, SCHEMA  # noqa: E402
+
+PRESET_NAMES = ["custom", *PRESETS]
+SAMPLE_FOLDER = os.path.join("SampleData", "lumbar_spine_3mm")
 
 #
 # BoneWatertight
@@ -61,8 +67,47 @@ See the project README for parameters and batch use.
 The reconstruction method is described in "Watertight 2-manifold 3D bone surface model
 reconstruction from CT images based on visual hyper-spherical mapping" (the paper this module
 implements). The module follows the 3D Slicer scripted-module template; it uses VTK, SimpleITK,
-numpy, scipy and Open3D.
+numpy, scipy and Open3D. The sample data is a crop of the TotalSegmentator test CT (Apache-2.0).
 """)
+        # Additional initialization step after application startup is complete
+        slicer.app.connect("startupCompleted()", registerSampleData)
+
+
+#
+# Register sample data sets in Sample Data module
+#
+
+
+def sampleDataFolder() -> Optional[str]:
+    """Folder of the bundled sample: inside the module when installed by the extension build,
+    beside the module folder in a source checkout."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    for base in (os.path.join(here, "Resources"), os.path.join(os.path.dirname(here), "Resources")):
+        folder = os.path.join(base, SAMPLE_FOLDER)
+        if os.path.isfile(os.path.join(folder, "ct.nrrd")):
+            return folder
+    return None
+
+
+def registerSampleData():
+    """Add the bundled sample (vertebrae L3/L4 of a 3 mm CT with TotalSegmentator labels) to the
+    Sample Data module. The files ship with the module, so the URIs are local file URIs."""
+    import SampleData
+
+    folder = sampleDataFolder()
+    if folder is None:
+        logging.warning("BoneWatertight: the bundled sample data was not found; not registered.")
+        return
+    iconsPath = os.path.join(os.path.dirname(os.path.abspath(__file__)), "Resources", "Icons")
+    SampleData.SampleDataLogic.registerCustomSampleDataSource(
+        category="BoneWatertight",
+        sampleName="BoneWatertightLumbarSpine3mm",
+        thumbnailFileName=os.path.join(iconsPath, "BoneWatertightSample.png"),
+        uris=[pathlib.Path(folder, "ct.nrrd").as_uri(), pathlib.Path(folder, "labels.nrrd").as_uri()],
+        fileNames=["BoneWatertightLumbarSpine3mm_ct.nrrd", "BoneWatertightLumbarSpine3mm_labels.nrrd"],
+        nodeNames=["BoneWatertightLumbarSpine3mm", "BoneWatertightLumbarSpine3mm segments"],
+        loadFileType=["VolumeFile", "SegmentationFile"],
+    )
 
 
 #
@@ -70,13 +115,41 @@ numpy, scipy and Open3D.
 #
 
 
+def libraryParameterAnnotation(spec):
+    """Parameter-node type of one library parameter, from its schema entry (ParamSpec): the
+    panel's range (WithinRange; the auto sentinel extends it) or the choices of a choice-valued
+    parameter. Decimals and steps are set on the widgets (applySchemaToWidgets)."""
+    if spec.kind is bool:
+        return bool
+    if spec.choices:
+        return Annotated[str, Choice(list(spec.choices))]
+    low, high = spec.panel_range()
+    return Annotated[spec.kind, WithinRange(low, high)]
+
+
+def withLibraryParameters(cls):
+    """Class decorator: one field per library parameter shown in the panel (BoneWatertightLib.params
+    SCHEMA), with its annotation and default, added before @parameterNodeWrapper reads the class."""
+    annotations = dict(cls.__dict__.get("__annotations__", {}))
+    for spec in SCHEMA.values():
+        if spec.panel is None:
+            continue
+        annotations[spec.name] = libraryParameterAnnotation(spec)
+        setattr(cls, spec.name, spec.to_panel(spec.default))
+    cls.__annotations__ = annotations
+    return cls
+
+
 @parameterNodeWrapper
+@withLibraryParameters
 class BoneWatertightParameterNode:
-    """Every input, option and algorithm parameter (names of the algorithm parameters are those of
-    BoneWatertightLib.params.Parameters; 0 means "auto" for spacing, sigma and edge_length).
+    """Every input, option and algorithm parameter.
 
     inputVolume - CT volume (HU). inputSegmentation/segmentId - the rough bone segment (segment
     selector synced by hand: the wrapper has no connector for it). outputModel - result model.
+    preset - the last preset chosen. addAsSegment, showIntermediates, colorByDistance - outputs.
+    The algorithm parameters (spacing, h0, ht, ...) are added by withLibraryParameters from the
+    library's schema; for those whose schema allows "auto" the slider's sentinel (0) means auto.
     """
 
     inputVolume: vtkMRMLScalarVolumeNode
@@ -87,53 +160,13 @@ class BoneWatertightParameterNode:
     addAsSegment: bool = False
     showIntermediates: bool = False
     colorByDistance: bool = True
-    # resampling
-    spacing: Annotated[float, WithinRange(0.0, 2.0)] = 0.0
-    margin: Annotated[float, WithinRange(0.0, 30.0)] = 5.0
-    segment_dilation: Annotated[float, WithinRange(0.0, 20.0)] = 3.0
-    max_memory_gb: Annotated[float, WithinRange(0.5, 64.0)] = 4.0
-    # hybrid filter
-    sigma: Annotated[float, WithinRange(0.0, 3.0)] = 0.0
-    rho: Annotated[float, WithinRange(50.0, 100.0)] = 80.0
-    # thresholds
-    theta_max: Annotated[float, WithinRange(500.0, 4000.0)] = 2500.0
-    h0: Annotated[float, WithinRange(-200.0, 2000.0)] = 300.0
-    ht: Annotated[float, WithinRange(-300.0, 1500.0)] = 150.0
-    max_erosions: Annotated[int, WithinRange(1, 10)] = 3
-    opening: Annotated[int, WithinRange(0, 10)] = 1
-    closing: Annotated[int, WithinRange(0, 10)] = 2
-    # visible points, Poisson, deformation
-    views: Annotated[int, WithinRange(1, 26)] = 14
-    view_distance: Annotated[float, WithinRange(1.0, 50.0)] = 20.0
-    log_radius: Annotated[float, WithinRange(1.0, 6.0)] = 3.6
-    poisson_depth: Annotated[int, WithinRange(4, 10)] = 7
-    edge_length: Annotated[float, WithinRange(0.0, 5.0)] = 0.0
-    iterations: Annotated[int, WithinRange(0, 50)] = 8
-    alpha: Annotated[float, WithinRange(0.0, 10.0)] = 1.0
-    beta: Annotated[float, WithinRange(0.0, 10.0)] = 1.0
-    search_radius: Annotated[float, WithinRange(0.5, 4.0)] = 1.5
-    search_offset: Annotated[float, WithinRange(0.1, 2.0)] = 0.75
-    refine_edges: bool = True
-    edge_level: Annotated[float, WithinRange(0.3, 0.9)] = 0.6
-
-
-# Parameter-node fields that are algorithm parameters, and those where 0 means "auto" (None).
-ALGORITHM_FIELDS = (
-    "spacing", "margin", "segment_dilation", "max_memory_gb", "sigma", "rho", "theta_max", "h0", "ht",
-    "max_erosions", "opening", "closing", "views", "view_distance", "log_radius", "poisson_depth",
-    "edge_length", "iterations", "alpha", "beta", "search_radius", "search_offset", "refine_edges",
-    "edge_level",
-)
-AUTO_ZERO_FIELDS = ("spacing", "edge_length")
 
 
 def parametersFromNode(parameterNode) -> dict:
-    """Keyword arguments for BoneWatertightLib.params.Parameters from the parameter node."""
-    values = {}
-    for name in ALGORITHM_FIELDS:
-        value = getattr(parameterNode, name)
-        values[name] = None if (name in AUTO_ZERO_FIELDS and not value) else value
-    return values
+    """Keyword arguments for BoneWatertightLib.params.Parameters from the parameter node (the
+    schema turns the panel's auto sentinel into None)."""
+    return {name: spec.from_panel(getattr(parameterNode, name))
+            for name, spec in SCHEMA.items() if spec.panel is not None}
 
 
 #
@@ -163,6 +196,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.layout.addWidget(uiWidget)
         self.ui = slicer.util.childWidgetVariables(uiWidget)
         uiWidget.setMRMLScene(slicer.mrmlScene)
+        self.applySchemaToWidgets(uiWidget)
 
         self.logic = BoneWatertightLogic()
 
@@ -187,6 +221,33 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             slider.connect("valueChanged(double)", self.onThresholdDragged)
 
         self.initializeParameterNode()
+
+    def applySchemaToWidgets(self, uiWidget) -> None:
+        """Bounds, steps, units, "auto" text, labels and tooltips of the parameter widgets, from
+        the library's schema (the .ui holds only the layout and SlicerParameterName)."""
+        for widget in uiWidget.findChildren(qt.QWidget):
+            spec = SCHEMA.get(widget.property("SlicerParameterName") or "")
+            if spec is None or spec.panel is None:
+                continue
+            widget.toolTip = spec.describe()
+            if spec.kind is bool:
+                widget.text = spec.label
+            elif spec.numeric:
+                low, high = spec.panel_range()
+                if spec.kind is float:
+                    widget.decimals = spec.decimals if spec.decimals is not None else 2
+                    widget.singleStep = spec.step if spec.step is not None else 0.1
+                    widget.minimum, widget.maximum = low, high
+                    widget.suffix = f" {spec.unit}" if spec.unit else ""
+                    if spec.allows_auto:
+                        widget.specialValueText = _("auto")
+                else:
+                    widget.setRange(int(low), int(high))
+                widget.value = spec.to_panel(spec.default)
+            label = uiWidget.findChild(qt.QLabel, "label_" + widget.objectName)
+            if label is not None:
+                label.text = spec.label + ":"
+                label.toolTip = spec.describe()
 
     def cleanup(self) -> None:
         self.removePreview()
@@ -280,16 +341,13 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def onPresetChanged(self, index) -> None:
         name = self.ui.presetComboBox.currentText
-        if not self._parameterNode or name not in PRESET_NAMES or name == "custom":
+        if not self._parameterNode or name not in PRESETS:
             return
-        from BoneWatertightLib.params import preset
-
-        values = preset(name).to_dict()
+        # A preset sets only its own fields (thresholds, morphology); the user's spacing,
+        # iterations, edge level ... stay as they are.
         with slicer.util.NodeModify(self._parameterNode):
-            for key in ALGORITHM_FIELDS:
-                if key in values:
-                    value = values[key]
-                    setattr(self._parameterNode, key, 0.0 if value is None else value)
+            for key, value in PRESETS[name].items():
+                setattr(self._parameterNode, key, SCHEMA[key].to_panel(value))
 
     def onAutoThreshold(self) -> None:
         p = self._parameterNode
@@ -438,11 +496,11 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         try:
             from BoneWatertightLib.errors import CancelledError
 
-            model, result = self.logic.process(
+            model, result = self.logic.processWithResult(
                 p.inputVolume, p.inputSegmentation, p.segmentId, p.outputModel,
                 progressCallback=self._progress, addAsSegment=p.addAsSegment,
                 showIntermediates=p.showIntermediates, colorByDistance=p.colorByDistance,
-                **parametersFromNode(p), returnResult=True)
+                **parametersFromNode(p))
             p.outputModel = model
             from BoneWatertightLib import mrml
 
@@ -480,9 +538,10 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
     def getParameterNode(self):
         return BoneWatertightParameterNode(super().getParameterNode())
 
-    def process(self, volumeNode, segmentationNode, segmentId, outputModelNode=None, progressCallback=None,
-                addAsSegment=False, showIntermediates=False, colorByDistance=True, preset=None,
-                returnResult=False, **parameters):
+    def process(self, volumeNode: vtkMRMLScalarVolumeNode, segmentationNode: vtkMRMLSegmentationNode,
+                segmentId: str, outputModelNode: Optional[vtkMRMLModelNode] = None, progressCallback=None,
+                addAsSegment: bool = False, showIntermediates: bool = False, colorByDistance: bool = True,
+                preset: Optional[str] = None, **parameters) -> vtkMRMLModelNode:
         """Reconstruct the watertight bone surface into a model node.
 
         :param volumeNode: CT volume (vtkMRMLScalarVolumeNode, HU).
@@ -490,17 +549,31 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         :param segmentId: ID of the bone segment.
         :param outputModelNode: model to replace on success; a new one is created if None.
         :param progressCallback: callback(fraction, message); returning False cancels.
-        :param preset: "femur", "hip" or "vertebra" (parameters given explicitly override it).
-        :param parameters: any field of BoneWatertightLib.params.Parameters (h0, ht, theta_max, ...).
-        :return: the model node (and the ReconstructionResult if returnResult).
-        :raises BoneWatertightLib.errors.InputError: bad inputs; the scene is unchanged.
+        :param addAsSegment: also add the surface to the segmentation as a new segment.
+        :param showIntermediates: add the intermediate point sets and M0 as model nodes.
+        :param colorByDistance: colour the model by the per-vertex distance to the constraints.
+        :param preset: "femur", "hip" or "vertebra": sets its own fields; explicit parameters override it.
+        :param parameters: fields of BoneWatertightLib.params.Parameters (h0, ht, theta_max, ...),
+            checked against the library's schema (type and range).
+        :return: the model node.
+        :raises BoneWatertightLib.errors.InputError: (a ValueError) bad inputs; the scene is unchanged.
         """
-        from BoneWatertightLib import mrml
-        from BoneWatertightLib.params import Parameters
-        from BoneWatertightLib.params import preset as makePreset
+        model, _result = self.processWithResult(
+            volumeNode, segmentationNode, segmentId, outputModelNode, progressCallback, addAsSegment,
+            showIntermediates, colorByDistance, preset, **parameters)
+        return model
 
-        params = makePreset(preset, **parameters) if preset and preset != "custom" else Parameters().replace(
-            **parameters)
+    def processWithResult(self, volumeNode, segmentationNode, segmentId, outputModelNode=None,
+                          progressCallback=None, addAsSegment=False, showIntermediates=False,
+                          colorByDistance=True, preset=None, **parameters):
+        """As process(), returning (model node, BoneWatertightLib ReconstructionResult with its typed report)."""
+        from BoneWatertightLib import mrml
+        from BoneWatertightLib.params import Parameters, apply_preset
+
+        params = Parameters()
+        if preset and preset != "custom":
+            params = apply_preset(params, preset)
+        params = params.replace(**parameters)
         startTime = time.time()
         logging.info("BoneWatertight: processing started")
         model, result = mrml.run_on_nodes(
@@ -509,7 +582,7 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
             colorByDistance=colorByDistance)
         logging.info(f"BoneWatertight: processing completed in {time.time() - startTime:.2f} s: "
                      f"{mrml.summarize(result)}")
-        return (model, result) if returnResult else model
+        return model, result
 
 
 #

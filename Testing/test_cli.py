@@ -95,6 +95,17 @@ def test_cli_writes_surface_and_report(case, lps_run):
     assert report["distance_to_constraints_mm"]["n"] == surface.n_vertices
     assert report["timings_s"]["reconstruct"] > 0
     assert report["parameters"]["spacing"] == 1.0
+    # per-stage timings come from the typed pipeline report, field by field (never null)
+    import dataclasses
+
+    from BoneWatertightLib.report import StageTimes
+
+    stages = report["timings_s"]["stages"]
+    assert set(stages) == {f.name for f in dataclasses.fields(StageTimes)}
+    assert all(isinstance(v, float) and v >= 0 for v in stages.values()), stages
+    assert stages["total"] > 0 and stages["poisson"] > 0
+    assert report["pipeline"]["timings"] == stages
+    assert report["pipeline"]["constants"]["deform"]["SEARCH_NEIGHBOURS"] == 8
 
 
 def test_cli_ras_is_lps_with_x_y_negated(case, lps_run, tmp_path):

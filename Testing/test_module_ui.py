@@ -39,10 +39,16 @@ def _module_ast():
 
 
 def _parameter_node_fields():
+    """Fields declared in the class body plus those withLibraryParameters adds from the
+    library's schema (every parameter with a panel section; see test_schema.py)."""
+    from BoneWatertightLib.params import SCHEMA
+
     for node in ast.walk(_module_ast()):
         if isinstance(node, ast.ClassDef) and any(
                 (isinstance(d, ast.Name) and d.id == "parameterNodeWrapper") for d in node.decorator_list):
-            return [s.target.id for s in node.body if isinstance(s, ast.AnnAssign)]
+            assert any(isinstance(d, ast.Name) and d.id == "withLibraryParameters" for d in node.decorator_list)
+            own = [s.target.id for s in node.body if isinstance(s, ast.AnnAssign)]
+            return own + [name for name, spec in SCHEMA.items() if spec.panel is not None]
     raise AssertionError("no @parameterNodeWrapper class in BoneWatertight.py")
 
 
@@ -92,9 +98,11 @@ def test_every_parameter_field_has_a_widget():
         assert f in bound, f"parameter '{f}' has no widget with SlicerParameterName"
     # and no widget binds to a parameter that does not exist
     assert set(bound) <= set(fields)
-    # every bound widget has a tooltip
+    # every bound widget has a tooltip: in the .ui, or from the schema in setup()
+    from BoneWatertightLib.params import SCHEMA
+
     for param, name in bound.items():
-        assert widgets[name]["tip"], f"widget {name} ({param}) has no tooltip"
+        assert widgets[name]["tip"] or param in SCHEMA, f"widget {name} ({param}) has no tooltip"
 
 
 def test_parameter_node_covers_every_library_parameter():
@@ -104,40 +112,6 @@ def test_parameter_node_covers_every_library_parameter():
     lib = {f.name for f in dataclasses.fields(Parameters)} - {"keep_intermediates"}  # = showIntermediates
     assert lib <= fields, f"missing in the parameter node: {sorted(lib - fields)}"
     assert "showIntermediates" in fields
-
-
-def test_parameter_node_defaults_match_library():
-    """Defaults in the wrapper equal the library's (0 stands for None = auto)."""
-    from BoneWatertightLib.params import Parameters
-
-    defaults = {}
-    for node in ast.walk(_module_ast()):
-        if isinstance(node, ast.ClassDef) and node.name == "BoneWatertightParameterNode":
-            for s in node.body:
-                if isinstance(s, ast.AnnAssign) and s.value is not None:
-                    try:
-                        defaults[s.target.id] = ast.literal_eval(s.value)
-                    except ValueError:
-                        pass
-    for f in dataclasses.fields(Parameters):
-        if f.name in defaults:
-            want = f.default if f.default is not None else 0.0
-            assert defaults[f.name] == want, f"default of {f.name}: module {defaults[f.name]} vs library {want}"
-
-
-def test_ui_slider_defaults_match_parameter_node():
-    _, widgets = _ui_widgets()
-    from BoneWatertightLib.params import Parameters
-
-    p = Parameters()
-    for name, w in widgets.items():
-        if w["param"] and hasattr(p, w["param"]) and w["cls"] in ("ctkSliderWidget", "QSpinBox"):
-            v = None
-            for prop in w["elem"].findall("property"):
-                if prop.get("name") == "value":
-                    v = float(prop[0].text)
-            lib = getattr(p, w["param"])
-            assert v == pytest.approx(0.0 if lib is None else float(lib)), name
 
 
 def _placeholder_ui(tmp_path):

@@ -481,7 +481,14 @@ def test_run_on_nodes_sphere_accuracy_in_ras(scene, refine_edges):
     assert fe.GetOutput().GetNumberOfCells() == 0
     assert model.GetPolyData().GetPointData().GetNormals() is not None
     assert model.GetDisplayNode() is not None
-    assert model.GetAttribute(mrml.REPORT_ATTRIBUTE)
+    import json
+    import re
+
+    stored = json.loads(model.GetAttribute(mrml.REPORT_ATTRIBUTE))
+    assert stored["timings"]["total"] == pytest.approx(result.report.timings.total)
+    summary = mrml.summarize(result)
+    assert re.search(rf", {result.report.timings.total:.1f} s", summary), summary
+    assert "checks passed" in summary and f"{len(pts)} vertices" in summary
     assert fractions and fractions[-1] == pytest.approx(1.0, abs=0.05)
     # inputs untouched, new segment added with the user's conversion parameters intact
     assert np.array_equal(ns.vtk_to_numpy(ct.GetImageData().GetPointData().GetScalars()), hu.ravel())

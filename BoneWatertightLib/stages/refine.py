@@ -46,8 +46,8 @@ OUTLIER_VOXELS = 0.8
 
 
 def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
-                    max_shift=MAX_SHIFT_MM, min_contrast=MIN_CONTRAST_HU, alpha=REFINE_ALPHA,
-                    beta=REFINE_BETA, passes=REFINE_PASSES):
+                    max_shift=MAX_SHIFT_MM, min_contrast=MIN_CONTRAST_HU,
+                    smoothness=REFINE_ALPHA, damping=REFINE_BETA, passes=REFINE_PASSES):
     """Move each vertex along its normal to the CT profile's edge at ``edge_level``.
 
     Repeats :func:`refine_pass` (vertices held back by the back-off get another chance once
@@ -67,8 +67,9 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
         HT in HU: a profile whose peak is below it gives no edge.
     edge_level : float
         Where between the outside valley (0) and the bone peak (1) the edge sits.
-    max_shift, min_contrast, alpha, beta, passes
-        See the module constants.
+    max_shift, min_contrast, smoothness, damping, passes
+        See the module constants (smoothness and damping are the refinement's own Laplacian and
+        damping weights, not the deformation's alpha and beta).
 
     Returns
     -------
@@ -84,7 +85,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
     ops = ((L.T @ L).tocsr(), (sp.identity(len(vertices), format="csr") - L).tocsr())
     for _ in range(passes):
         v, _, frac, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
-                                     alpha, beta, ops=ops, edge_level=edge_level)
+                                     smoothness, damping, ops=ops, edge_level=edge_level)
         if not ok:
             break
     # Passes check only for flips; the exact self-intersection test runs against the verified
@@ -101,7 +102,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
         if not reverted.any():
             break
         v, _, _, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
-                                  alpha, beta, ops=ops, edge_level=edge_level)
+                                  smoothness, damping, ops=ops, edge_level=edge_level)
         if not ok:
             v = clean
             break
@@ -112,7 +113,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
 
 
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
-                min_contrast=MIN_CONTRAST_HU, alpha=REFINE_ALPHA, beta=REFINE_BETA, ops=None,
+                min_contrast=MIN_CONTRAST_HU, smoothness=REFINE_ALPHA, damping=REFINE_BETA, ops=None,
                 edge_level=0.6):
     """Return (new vertices, per-vertex shift along the normal, fraction refined, ok).
 
@@ -153,8 +154,8 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
     # grazing profile) gets no target: the Laplacian term carries it with its neighbours.
     w[np.abs(shift - ring_mean(avg, shift, w)) > max(OUTLIER_MM, OUTLIER_VOXELS * spacing)] = 0.0
     targets = vertices + shift[:, None] * n
-    A = (alpha * LtL + sp.diags(w + beta)).tocsr()
-    rhs = w[:, None] * targets + alpha * (LtL @ vertices) + beta * vertices
+    A = (smoothness * LtL + sp.diags(w + damping)).tocsr()
+    rhs = w[:, None] * targets + smoothness * (LtL @ vertices) + damping * vertices
     new = solve_spd(A, rhs, vertices)
     new, safe, _ = safe_update(vertices, new, faces, intersections=False)
     moved = np.einsum("ij,ij->i", new - vertices, n)

@@ -1,76 +1,52 @@
 """Headless batch run of BoneWatertight inside 3D Slicer.
 
-Usage:
+Usage (the same flags, parameter options and exit codes as the ``bonewatertight`` command):
   Slicer --no-splash --no-main-window --python-script bonewatertight_batch.py -- \
-      --ct CT.nrrd --segmentation Seg.seg.nrrd [--segment NAME_OR_ID] --output bone.stl \
-      [--preset femur|hip|vertebra] [--param h0=300 --param spacing=0.5 ...] [--report report.json]
-      [--coordinate-system LPS|RAS]
+      --ct CT.nrrd --seg Seg.seg.nrrd --label NAME_OR_ID --out bone.stl \
+      [--preset femur|hip|vertebra] [--h0 300 --spacing 0.5 ...] [--report report.json] [--ras]
   Slicer --no-main-window --python-script bonewatertight_batch.py -- --self-test
 
-The logic is instantiated directly (not through getModuleLogic, which would build the widget).
-Exit status: 0 success, 1 bad input / failed reconstruction, 2 usage error.
+Every run goes through the library's run service (BoneWatertightLib.app.run), with Slicer's own
+Python, VTK and SimpleITK. ``--self-test`` builds a sphere phantom as MRML nodes, converts it
+with the MRML adapter (BoneWatertightLib.mrml) and checks the radius. Exit status: the table of
+BoneWatertightLib.errors (0 success, 2 bad input, 3 failed, 4 missing dependency, 5 output/OS
+error, 130 cancelled, 1 internal error).
 """
 
-import argparse
-import json
 import os
 import sys
-import traceback
+import tempfile
 
 import slicer
 
 
-def _parse(argv):
-    parser = argparse.ArgumentParser(prog="bonewatertight_batch.py", description=__doc__.split("\n")[0])
-    parser.add_argument("--ct", help="CT volume file (NRRD, NIfTI, MHA, ...)")
-    parser.add_argument("--segmentation", help="segmentation file (.seg.nrrd) or label map")
-    parser.add_argument("--segment", default=None, help="segment name or ID (default: the first segment)")
-    parser.add_argument("--output", help="output surface file (.stl, .ply, .obj, .vtk, .vtp)")
-    parser.add_argument("--coordinate-system", choices=["LPS", "RAS"], default="LPS",
-                        help="coordinate system written into the surface file (Slicer's default: LPS)")
-    parser.add_argument("--preset", choices=["femur", "hip", "vertebra"], default=None)
-    parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                        help="any BoneWatertightLib.params.Parameters field, repeatable")
-    parser.add_argument("--report", default=None, help="write the JSON report here")
-    parser.add_argument("--self-test", action="store_true", help="run on a built-in phantom (no files needed)")
-    return parser.parse_args(argv)
+def _ensureLibrary():
+    """Make BoneWatertightLib importable: the module folder when Slicer loaded the extension,
+    else the checkout this script lives in."""
+    try:
+        import BoneWatertightLib  # noqa: F401
+    except ImportError:
+        sys.path.append(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
 
 
-def _value(text):
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return {"true": True, "false": False, "none": None}.get(text.lower(), text)
+def build_parser():
+    """The argument parser: the library's shared option builders plus --self-test."""
+    _ensureLibrary()
+    from BoneWatertightLib.app import options
 
-
-def _find_segment(segmentationNode, nameOrId):
-    segmentation = segmentationNode.GetSegmentation()
-    if nameOrId is None:
-        if segmentation.GetNumberOfSegments() == 0:
-            raise ValueError("The segmentation has no segment.")
-        return segmentation.GetNthSegmentID(0)
-    if segmentation.GetSegment(nameOrId) is not None:
-        return nameOrId
-    segmentId = segmentation.GetSegmentIdBySegmentName(nameOrId)
-    if not segmentId:
-        raise ValueError(f"No segment named or with ID '{nameOrId}'.")
-    return segmentId
-
-
-def _load_segmentation(path):
-    if path.lower().endswith((".seg.nrrd", ".seg.nhdr")):
-        return slicer.util.loadSegmentation(path)
-    label = slicer.util.loadLabelVolume(path)
-    seg = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLSegmentationNode", "Segmentation")
-    slicer.modules.segmentations.logic().ImportLabelmapToSegmentationNode(label, seg)
-    slicer.mrmlScene.RemoveNode(label)
-    return seg
+    parser = options.Parser(prog="bonewatertight_batch.py", description=__doc__.split("\n")[0])
+    options.add_io_options(parser)
+    options.add_preset_option(parser)
+    parser.add_argument("-q", "--quiet", action="store_true", help="Print nothing but errors.")
+    parser.add_argument("--self-test", action="store_true",
+                        help="Run on a built-in phantom made of MRML nodes (no files needed).")
+    options.add_parameter_options(parser)
+    return parser
 
 
 def _phantom():
-    """A sphere of radius 10 mm (~1000 HU in 40 HU) on an oblique grid, and a rough segment."""
+    """A sphere of radius 10 mm (~1000 HU in 40 HU) on an oblique grid, and a rough segment,
+    as MRML nodes; returns (CT node, segmentation node, segment ID, centre RAS)."""
     import numpy as np
 
     dims = 40
@@ -87,71 +63,83 @@ def _phantom():
     seg = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLSegmentationNode", "Segmentation")
     slicer.modules.segmentations.logic().ImportLabelmapToSegmentationNode(lab, seg)
     slicer.mrmlScene.RemoveNode(lab)
-    return ct, seg, centre
+    return ct, seg, seg.GetSegmentation().GetNthSegmentID(0), centre
+
+
+def _selfTest(args, params, progress):
+    import numpy as np
+
+    from BoneWatertightLib import mrml
+    from BoneWatertightLib.app import run
+
+    ctNode, segNode, segmentId, centre = _phantom()
+    ct = mrml.volume_to_sitk(ctNode)
+    mask = mrml.segment_to_sitk_mask(segNode, segmentId, ctNode)
+    out = args.out or os.path.join(tempfile.mkdtemp(prefix="bonewatertight_selftest_"), "sphere.stl")
+    report = run.run_case(ct, mask, "phantom", out, params, coordinate_system="RAS" if args.ras else "LPS",
+                          progress=progress, inputs={"self_test": True})
+    from BoneWatertightLib.io import meshes
+
+    points = meshes.read_surface(out, "RAS").vertices
+    error = float(np.abs(np.linalg.norm(points - centre, axis=1) - 10.0).max())
+    print(f"SELFTEST max radial error {error:.3f} mm", flush=True)
+    return [report], error <= 1.0
 
 
 def main(argv):
-    args = _parse(argv)
-    import BoneWatertight
+    parser = build_parser()
+    from BoneWatertightLib import errors
+    from BoneWatertightLib.app import options, run
+    from BoneWatertightLib.report import case_summary_line
 
-    parameters = {}
-    for item in args.param:
-        if "=" not in item:
-            print(f"--param expects NAME=VALUE, got '{item}'", file=sys.stderr)
-            return 2
-        name, text = item.split("=", 1)
-        parameters[name.strip()] = _value(text.strip())
+    try:
+        args = parser.parse_args(argv)
+        overrides = options.parameter_overrides(args)
+        if args.self_test:
+            overrides = {"spacing": 0.6, "h0": 500.0, "ht": 300.0, **overrides}
+        if args.save_intermediates:
+            overrides["keep_intermediates"] = True
+        params = options.make_parameters(args.preset, overrides)
 
-    if args.self_test:
-        ct, seg, centre = _phantom()
-        parameters.setdefault("spacing", 0.6)
-        parameters.setdefault("h0", 500.0)
-        parameters.setdefault("ht", 300.0)
-    else:
-        if not (args.ct and args.segmentation and args.output):
-            print("--ct, --segmentation and --output are required (or --self-test).", file=sys.stderr)
-            return 2
-        ct = slicer.util.loadVolume(args.ct)
-        seg = _load_segmentation(args.segmentation)
-    segmentId = _find_segment(seg, args.segment)
+        def progress(fraction, message):
+            if not args.quiet:
+                print(f"PROGRESS {fraction:.3f} {message}", flush=True)
+            return True
 
-    def progress(fraction, message):
-        print(f"PROGRESS {fraction:.3f} {message}", flush=True)
-        return True
+        ok = True
+        if args.self_test:
+            reports, ok = _selfTest(args, params, progress)
+        else:
+            missing = [f for f, v in (("--ct", args.ct), ("--seg", args.seg), ("--label", args.label),
+                                      ("--out", args.out)) if not v]
+            if missing:
+                parser.error("missing " + ", ".join(missing) + " (or --self-test)")
+            if len(args.label) > 1 and "{label}" not in args.out:
+                parser.error("several labels need {label} in --out")
+            reports = [run.run_files(args.ct, args.seg, label, args.out, params, ct_series=args.ct_series,
+                                     coordinate_system="RAS" if args.ras else "LPS", picture=args.picture,
+                                     intermediates_dir=args.save_intermediates, progress=progress,
+                                     inputs={"preset": args.preset})
+                       for label in args.label]
+        for report in reports:
+            print("RESULT " + case_summary_line(report), flush=True)
+        if args.report:
+            run.write_reports(args.report, reports)
+        return errors.EXIT_OK if ok else errors.EXIT_FAILED
+    except SystemExit as exc:  # --help
+        return exc.code if isinstance(exc.code, int) else errors.EXIT_OK
+    except KeyboardInterrupt:
+        print("error: cancelled", file=sys.stderr)
+        return errors.EXIT_CANCELLED
+    except Exception as exc:  # one line for the user, the documented exit code
+        code = errors.exit_code_for(exc)
+        if code == errors.EXIT_INTERNAL:
+            import traceback
 
-    logic = BoneWatertight.BoneWatertightLogic()
-    model, result = logic.process(ct, seg, segmentId, progressCallback=progress, preset=args.preset,
-                                  returnResult=True, **parameters)
-    from BoneWatertightLib import mrml
-
-    print("RESULT " + mrml.summarize(result), flush=True)
-    if args.self_test:
-        import numpy as np
-
-        points = slicer.util.arrayFromModelPoints(model)
-        error = np.abs(np.linalg.norm(points - centre, axis=1) - 10.0).max()
-        print(f"SELFTEST max radial error {error:.3f} mm", flush=True)
-        if error > 1.0:
-            return 1
-    if args.output:
-        storage = model.CreateDefaultStorageNode()
-        storage.SetCoordinateSystem(slicer.vtkMRMLStorageNode.GetCoordinateSystemFromString(args.coordinate_system))
-        storage.SetFileName(os.path.abspath(args.output))
-        if not storage.WriteData(model):
-            print(f"Could not write {args.output}", file=sys.stderr)
-            return 1
-        slicer.mrmlScene.RemoveNode(storage)
-    if args.report:
-        with open(args.report, "w") as f:
-            json.dump(result.report, f, indent=2, default=str)
-    return 0
+            traceback.print_exc()
+        print(f"error: {errors.one_line(exc)}", file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":
-    try:
-        status = main(sys.argv[1:])
-    except Exception as exc:  # report and exit non-zero instead of leaving Slicer running
-        traceback.print_exc()
-        print(f"ERROR {exc}", file=sys.stderr)
-        status = 1
-    slicer.util.exit(status)
+    slicer.util.exit(main(sys.argv[1:]))
