@@ -350,21 +350,89 @@ def test_batch_folder_needs_case_placeholder(tmp_path, capsys):
     assert code == 2 and "{case}" in stderr
 
 
-def test_batch_on_dask_local_cluster(case, tmp_path, capsys):
-    distributed = pytest.importorskip("distributed", reason="dask[distributed] not installed")
+def _wait_for(predicate, seconds, what):
+    import time
+
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if predicate():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture(params=["installed", "shipped"])
+def dask_cluster(request, tmp_path_factory):
+    """A Dask scheduler and one worker started as processes outside the checkout (cwd in a
+    temporary folder, no PYTHONPATH). "installed": the worker's Python has the package (pip
+    install -e, done by setup_env.sh). "shipped": the worker's Python has the dependencies but
+    not the package (site-packages put on sys.path by hand under -S, so no .pth file and no
+    editable install), so the client must ship the code."""
+    import json
+    import sysconfig
+
+    pytest.importorskip("distributed", reason="dask[distributed] not installed")
+    folder = tmp_path_factory.mktemp("dask")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    sched_file = folder / "scheduler.json"
+    scheduler = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--scheduler-file",
+         str(sched_file), "--port", "0", "--no-dashboard"], cwd=folder, env=env,
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    worker = None
+    try:
+        _wait_for(sched_file.exists, 60, "the scheduler")
+        worker_args = ["--scheduler-file", str(sched_file), "--nthreads", "1", "--no-nanny",
+                       "--no-dashboard", "--local-directory", str(folder / "work")]
+        if request.param == "installed":
+            cmd = [sys.executable, "-m", "distributed.cli.dask_worker", *worker_args]
+        else:
+            boot = ("import sys; sys.path[:0] = [%r, %r]; sys.argv = ['dask-worker'] + %r; "
+                    "from distributed.cli.dask_worker import main; main()") % (
+                sysconfig.get_path("purelib"), sysconfig.get_path("platlib"), worker_args)
+            cmd = [sys.executable, "-S", "-c", boot]
+        worker = subprocess.Popen(cmd, cwd=folder, env=env, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL)
+        address = json.loads(sched_file.read_text())["address"]
+        from distributed import Client
+
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(1, timeout=60)
+            from BoneWatertightLib.app.batch import _IMPORT_PROBE
+
+            importable = all(client.run(eval, _IMPORT_PROBE).values())
+        assert importable == (request.param == "installed")
+        yield request.param, address
+    finally:
+        for proc in (worker, scheduler):
+            if proc is not None:
+                proc.terminate()
+                try:
+                    proc.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+
+
+def test_batch_on_dask_workers_outside_the_checkout(case, tmp_path, capsys, dask_cluster):
+    kind, address = dask_cluster
     folder, _ = case
     ct, mask = str(folder / "ct.nrrd"), str(folder / "mask.nrrd")
     _params_csv([[ct, mask, "1", "good.ply", ""], [ct, mask, "9", "bad.ply", ""]],
                 tmp_path / "cases.csv")
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
-                                  dashboard_address=None) as cluster:
-        code, _, _ = run(["--cases", str(tmp_path / "cases.csv"), "--dask",
-                          cluster.scheduler_address,
-                          "--summary", str(tmp_path / "summary.csv")] + FAST, capsys)
+    code, _, _ = run(["--cases", str(tmp_path / "cases.csv"), "--dask", address,
+                      "--summary", str(tmp_path / "summary.csv")] + FAST, capsys)
     assert code == 3
     rows = _read_summary(tmp_path / "summary.csv")
     assert [r["status"] for r in rows] == ["ok", "bad input"]
     assert os.path.exists(tmp_path / "good.ply") and not os.path.exists(tmp_path / "bad.ply")
+    from distributed import Client
+
+    with Client(address, timeout=60) as client:
+        where = list(client.run(eval, "__import__('BoneWatertightLib').__file__").values())
+    if kind == "installed":
+        assert ".zip" not in where[0]
+    else:
+        assert "BoneWatertightLib.zip" in where[0], where
 
 
 def test_dask_missing_gives_install_hint(tmp_path, capsys, monkeypatch):
