@@ -235,12 +235,12 @@ class Parameters:
     h0: float = param(
         300.0, "threshold", "Thresholds", label="Initial threshold H0", unit="HU",
         minimum=-500.0, maximum=4000.0, step=5.0, decimals=0, paper="300, hip bone 350",
-        help="Lower limit of the initial window [H0, θmax]: only reliable (cortical) bone; "
+        help="Lower limit of the initial window [H0, theta_max]: only reliable (cortical) bone; "
              "must be above HT")
     ht: float = param(
         150.0, "threshold", "Thresholds", label="Target threshold HT", unit="HU",
         minimum=-500.0, maximum=4000.0, step=5.0, decimals=0, paper="150",
-        help="Lower limit of the target window [HT, θmax]: reaches the blurred bone border; "
+        help="Lower limit of the target window [HT, theta_max]: reaches the blurred bone border; "
              "must be below H0")
     max_erosions: int = param(
         3, "threshold", "Advanced", label="Max. erosions m", minimum=1, maximum=10,
@@ -294,12 +294,12 @@ class Parameters:
              "previous iterate (damping, not the constraint pull); halves when progress stalls")
     search_radius: float = param(
         1.5, "deform", "Advanced", label="Search radius", unit="x d*", minimum=0.5, maximum=4.0,
-        step=0.05, decimals=2, paper="1 to √3",
+        step=0.05, decimals=2, paper="1 to sqrt(3)",
         help="Radius of the directional search ball, in units of d*")
     search_offset: float = param(
         0.75, "deform", "Advanced", label="Search offset δ", unit="x d*", minimum=0.1,
         maximum=2.0, step=0.05, decimals=2, paper="0.5 to 1",
-        help="Distance |δ| of the search ball's centre along the normal, in units of d*")
+        help="Distance |delta| of the search ball's centre along the normal, in units of d*")
 
     # --- edge refinement (ours)
     refine_edges: bool = param(

@@ -38,7 +38,7 @@ def test_cmake_ships_every_library_file(tmp_path):
     """Evaluate the module CMakeLists' own glob with cmake and compare with the files."""
     cmake = shutil.which("cmake")
     assert cmake, "cmake is needed for this test (Resources/Scripts/setup_env.sh installs it)"
-    text = (ROOT / "BoneWatertight" / "CMakeLists.txt").read_text()
+    text = (ROOT / "BoneWatertight" / "CMakeLists.txt").read_text(encoding="utf-8")
     glob = re.search(r"file\(GLOB_RECURSE _lib_scripts .*?\)\n", text, re.S)
     assert glob, "the module CMakeLists must glob the library recursively"
     filt = re.search(r"list\(FILTER _lib_scripts .*?\)\n", text, re.S)
@@ -48,7 +48,7 @@ def test_cmake_ships_every_library_file(tmp_path):
     script.write_text(f'set(CMAKE_CURRENT_SOURCE_DIR "{(ROOT / "BoneWatertight").as_posix()}")\n'
                       + glob.group(0) + (filt.group(0) if filt else "")
                       + 'foreach(f ${_lib_scripts})\n  message("${f}")\nendforeach()\n')
-    proc = subprocess.run([cmake, "-P", str(script)], capture_output=True, text=True, timeout=60)
+    proc = subprocess.run([cmake, "-P", str(script)], capture_output=True, text=True, encoding="utf-8", timeout=60)
     assert proc.returncode == 0, proc.stderr
     shipped = sorted(line.strip() for line in proc.stderr.splitlines() if line.strip())
     assert shipped == LIBRARY_FILES
@@ -62,20 +62,20 @@ def test_pip_install_gives_the_bonewatertight_command(tmp_path):
     target = tmp_path / "site"
     proc = subprocess.run(
         [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
-         "--target", str(target), str(ROOT)], capture_output=True, text=True, timeout=300,
+         "--target", str(target), str(ROOT)], capture_output=True, text=True, encoding="utf-8", timeout=300,
         cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     installed = sorted(p.relative_to(target).as_posix() for p in
                        (target / "BoneWatertightLib").rglob("*.py") if "__pycache__" not in p.parts)
     assert installed == LIBRARY_FILES
     meta = next(target.glob("bonewatertight-*.dist-info"))
-    metadata = email.parser.Parser().parsestr((meta / "METADATA").read_text())
+    metadata = email.parser.Parser().parsestr((meta / "METADATA").read_text(encoding="utf-8"))
     assert metadata["Name"] == "bonewatertight"
     assert "BoneWatertight developers" in (metadata["Author"] or metadata["Author-email"] or "")
     assert metadata["License-Expression"] == "Apache-2.0"
     assert {"numpy", "scipy", "simpleitk", "vtk", "open3d"} <= {
         re.split(r"[<>=!;\[ ]", r)[0].lower() for r in metadata.get_all("Requires-Dist")}
-    assert "bonewatertight = BoneWatertightLib.app.cli:main" in (meta / "entry_points.txt").read_text()
+    assert "bonewatertight = BoneWatertightLib.app.cli:main" in (meta / "entry_points.txt").read_text(encoding="utf-8")
 
     work = tmp_path / "elsewhere"
     work.mkdir()
@@ -83,15 +83,15 @@ def test_pip_install_gives_the_bonewatertight_command(tmp_path):
     env["PYTHONPATH"] = str(target)
     command = str(target / "bin" / "bonewatertight")
     help_run = subprocess.run([command, "--help"], cwd=work, env=env, capture_output=True,
-                              text=True, timeout=120)
+                              text=True, encoding="utf-8", timeout=120)
     assert help_run.returncode == 0, help_run.stderr
     assert "usage: bonewatertight" in help_run.stdout and "--edge-level" in help_run.stdout
     where = subprocess.run([sys.executable, "-c", "import BoneWatertightLib; print(BoneWatertightLib.__file__)"],
-                           cwd=work, env=env, capture_output=True, text=True, timeout=60)
+                           cwd=work, env=env, capture_output=True, text=True, encoding="utf-8", timeout=60)
     assert where.stdout.strip().startswith(str(target)), where.stdout
     bad = subprocess.run([command, "--ct", "ct.nrrd", "--seg", "seg.nrrd", "--label", "1",
                           "--out", "bone.stl", "--edge-level", "5"], cwd=work, env=env,
-                         capture_output=True, text=True, timeout=120)
+                         capture_output=True, text=True, encoding="utf-8", timeout=120)
     assert bad.returncode == 2
     assert bad.stderr.strip() == "error: edge_level must be between 0.3 and 0.9, got 5."
     assert os.listdir(work) == []
@@ -102,7 +102,7 @@ def test_environment_has_the_console_command(tmp_path):
     command = Path(sysconfig.get_path("scripts")) / "bonewatertight"
     assert command.exists(), "run Resources/Scripts/setup_env.sh (pip install -e .)"
     proc = subprocess.run([str(command), "--help"], cwd=tmp_path, env=_clean_env(),
-                          capture_output=True, text=True, timeout=120)
+                          capture_output=True, text=True, encoding="utf-8", timeout=120)
     assert proc.returncode == 0 and "--poisson-depth" in proc.stdout
 
 
@@ -125,7 +125,7 @@ def test_outputs_respect_the_umask(tmp_path, umask, mode):
         os.umask(old)
     for path in written:
         assert stat.S_IMODE(os.stat(path).st_mode) == mode, (path, oct(os.stat(path).st_mode))
-    assert (tmp_path / "r.json").read_text().strip().replace(" ", "").replace("\n", "") == '{"a":null}'
+    assert (tmp_path / "r.json").read_text(encoding="utf-8").strip().replace(" ", "").replace("\n", "") == '{"a":null}'
     assert not [p for p in os.listdir(tmp_path) if ".part" in p]
 
 

@@ -1,4 +1,5 @@
-"""Pictures (BoneWatertightLib.render) and the bundled-sample demo (Resources/Scripts/demo.py)."""
+"""Pictures (BoneWatertightLib.app.render, VTK offscreen) and the bundled-sample demo
+(Resources/Scripts/demo.py)."""
 
 import json
 import os
@@ -17,8 +18,6 @@ sys.path.insert(0, ROOT)
 from BoneWatertightLib.app import render  # noqa: E402
 from BoneWatertightLib.errors import InputError  # noqa: E402
 from BoneWatertightLib.mesh import Surface  # noqa: E402
-
-pytest.importorskip("matplotlib")
 
 SAMPLE = os.path.join(ROOT, "Resources", "SampleData", "lumbar_spine_3mm")
 
@@ -226,12 +225,76 @@ def test_render_cross_sections(tmp_path):
         render.render_cross_sections(ct, {}, str(tmp_path / "none.png"))
 
 
-def test_missing_matplotlib_is_a_dependency_error(monkeypatch, tmp_path):
-    from BoneWatertightLib.errors import DependencyError
+def _read_png(path):
+    """(h, w, 3) uint8 pixels of a PNG, top row first."""
+    import vtk
+    from vtk.util import numpy_support as ns
 
-    monkeypatch.setitem(sys.modules, "matplotlib", None)
-    with pytest.raises(DependencyError, match="matplotlib"):
-        render.render_surface(uv_sphere(np.zeros(3), 5.0), str(tmp_path / "x.png"))
+    reader = vtk.vtkPNGReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    image = reader.GetOutput()
+    w, h, _ = image.GetDimensions()
+    pixels = ns.vtk_to_numpy(image.GetPointData().GetScalars()).reshape(h, w, -1)[..., :3]
+    return pixels[::-1]
+
+
+def test_rendered_picture_shows_the_shaded_coloured_surface_and_the_sections(tmp_path):
+    """Not a blank image: the bone covers a good part of each view, is shaded (brightness
+    varies), its colour follows the distance map (dark violet to yellow), and the CT sections
+    show grey CT with the red cross-section over it."""
+    ct, centre = oblique_ct()
+    surface = uv_sphere(centre, 12.0, n_theta=96, n_phi=48)
+    # 0 at the bottom, 2 mm at the top: both ends of the colour map are on the picture
+    surface.point_data["DistanceToConstraints"] = (surface.vertices[:, 2] - centre[2] + 12.0) / 12.0
+    out = tmp_path / "sphere.png"
+    render.render_surface(surface, str(out), ct=ct, title="sphere")
+    pixels = _read_png(out).astype(np.int32)
+    h, w, _ = pixels.shape
+    top = render.TITLE_PX
+    panel = render.PANEL_PX
+    view = pixels[top:top + panel, :panel]
+    background_like = (np.abs(view - view[5:15, 5:15].reshape(-1, 3).mean(axis=0)).sum(axis=2) < 40)
+    grey = (view.max(axis=2) - view.min(axis=2)) < 12
+    bone = ~background_like & ~grey
+    assert 0.15 < bone.mean() < 0.8, bone.mean()
+    colours = view[bone]
+    # viridis ends: violet (blue > green) and yellow (red and green high, blue low)
+    assert ((colours[:, 2] > colours[:, 1] + 20) & (colours[:, 0] < 120)).sum() > 500
+    assert ((colours[:, 0] > 150) & (colours[:, 1] > 150) & (colours[:, 2] < 110)).sum() > 500
+    brightness = colours.sum(axis=1)
+    assert brightness.std() > 40  # lit and shaded, not flat
+    section = pixels[top + panel:, :panel]
+    red = (section[..., 0] > 180) & (section[..., 1] < 110) & (section[..., 2] < 110)
+    assert red.sum() > 300
+    ct_grey = (np.abs(section[..., 0] - section[..., 1]) < 4) & (section[..., 0] > 30)
+    assert ct_grey.mean() > 0.2
+    assert w == 3 * panel + render.COLORBAR_PX and h == top + 2 * panel
+
+
+def test_offscreen_unavailable_run_still_succeeds(tmp_path):
+    """Forced unavailability (BONEWATERTIGHT_OFFSCREEN=0): the surface and the report are
+    written, the picture is null with the reason, and the summary line says so."""
+    from test_cli import FAST, sphere_ct
+
+    ct, mask = sphere_ct()
+    sitk.WriteImage(ct, str(tmp_path / "ct.nrrd"))
+    sitk.WriteImage(mask, str(tmp_path / "mask.nrrd"))
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    env["BONEWATERTIGHT_OFFSCREEN"] = "0"
+    proc = subprocess.run(
+        [sys.executable, "-m", "BoneWatertightLib", "--ct", str(tmp_path / "ct.nrrd"),
+         "--seg", str(tmp_path / "mask.nrrd"), "--label", "1", "--out", str(tmp_path / "b.stl"),
+         "--picture", str(tmp_path / "b.png"), "--report", str(tmp_path / "r.json")]
+        + [a for a in FAST if a != "-q"], cwd=ROOT, env=env, capture_output=True, text=True,
+        encoding="utf-8", timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "b.stl").exists() and not (tmp_path / "b.png").exists()
+    report = json.loads((tmp_path / "r.json").read_text(encoding="utf-8"))
+    assert report["output"]["picture"] is None
+    assert "BONEWATERTIGHT_OFFSCREEN=0" in report["output"]["picture_error"]
+    assert "no picture: offscreen rendering is switched off" in proc.stdout
+    assert render.offscreen_status()[0], "this machine renders offscreen (EGL), see setup_env.sh"
 
 
 def test_bundled_sample_geometry():

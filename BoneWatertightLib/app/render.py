@@ -1,39 +1,55 @@
-"""PNG pictures of a reconstructed surface: shaded views and CT slices with the contour.
+"""PNG pictures of a reconstructed surface, rendered with VTK offscreen.
 
-Only numpy and matplotlib are used. matplotlib is optional (a CLI/development dependency):
-it is imported inside the functions, with the Agg canvas attached to a private ``Figure`` so
-the global pyplot backend (e.g. inside 3D Slicer or a notebook) is never touched. Without
-matplotlib the functions raise :class:`~BoneWatertightLib.errors.DependencyError`.
+One picture holds a title line, shaded and lit views of the surface coloured by a per-vertex
+value (by default the distance to the constraint points, viridis colour map with a scale bar),
+and, with the CT, three CT sections (axial, coronal, sagittal index planes through the surface
+centroid) in a bone window with the surface's cross-section drawn over them.
+
+Rendering needs an OpenGL context without a screen: on Linux without a display VTK's EGL window
+(Mesa's software driver works), else OSMesa, else the platform's window offscreen. When none
+works, :func:`offscreen_status` says why and :func:`render_surface` raises
+:class:`RenderUnavailable`, which the run service turns into "no picture" while the run still
+succeeds. ``BONEWATERTIGHT_OFFSCREEN=0`` switches rendering off.
 
 Geometry conventions: surfaces are drawn in physical LPS millimetres (a RAS surface is
-converted first). CT slices are the CT's own index planes nearest to the surface centroid;
-the surface's cross-section is computed by intersecting the triangles with that plane, which
-is exact in index space because the index <-> physical map is affine. Slices are shown in
-radiological orientation: axial and coronal with the patient's left on the right of the
-picture, axial with anterior up, coronal and sagittal with superior up, sagittal with
-anterior on the left.
+converted first). The CT sections are the CT's own index planes nearest to the surface
+centroid; the surface's cross-section is computed by intersecting the triangles with that plane,
+which is exact in index space because the index <-> physical map is affine. Sections are shown
+in radiological orientation: axial and coronal with the patient's left on the right of the
+picture, axial with anterior up, coronal and sagittal with superior up, sagittal with anterior
+on the left. Mesh views are never mirrored (anterior view: the patient's left on the right).
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from typing import Optional, Sequence, Union
 
 import numpy as np
 
 from ..errors import DependencyError, InputError
-from ..mesh.surface import Surface
+from ..mesh.surface import Surface, to_polydata
 
 # Bone window (HU) for the CT slices: soft tissue grey, cortical bone white.
 DEFAULT_WINDOW = (-350.0, 1250.0)
-# Beyond this many front-facing triangles per view, draw a random subset (drawing only:
-# at that density each triangle is below one pixel in a ~500 px view, so the look is unchanged).
-MAX_DRAWN_FACES = 120_000
-BONE_RGB = np.array([0.93, 0.87, 0.74])
-CONTOUR_COLORS = ("#ff3b30", "#00c8ff", "#ffd60a", "#34c759", "#bf5af2", "#ff9f0a",
-                  "#ffffff", "#ff2d92")
+BONE_RGB = (0.93, 0.87, 0.74)
+CONTOUR_COLORS = ((1.0, 0.23, 0.19), (0.0, 0.78, 1.0), (1.0, 0.84, 0.04), (0.2, 0.78, 0.35),
+                  (0.75, 0.35, 0.95), (1.0, 0.62, 0.04), (1.0, 1.0, 1.0), (1.0, 0.18, 0.57))
+# Size (pixels) of one view / section panel, of the title strip and of the colour-bar column.
+PANEL_PX = 420
+TITLE_PX = 46
+COLORBAR_PX = 120
+# Pictures are rendered at this many times their size and averaged down (anti-aliasing that
+# works with every OpenGL driver; FXAA renders black with Mesa's EGL).
+SUPERSAMPLE = 2
+# Viridis (perceptually ordered, colour-blind safe): 9 samples of the published map.
+VIRIDIS = ((0.267, 0.005, 0.329), (0.283, 0.141, 0.458), (0.254, 0.265, 0.530),
+           (0.207, 0.372, 0.553), (0.164, 0.471, 0.558), (0.128, 0.567, 0.551),
+           (0.135, 0.659, 0.518), (0.267, 0.749, 0.441), (0.478, 0.821, 0.318),
+           (0.741, 0.873, 0.150), (0.993, 0.906, 0.144))
 
-# Camera of each mesh view: (name, direction the camera looks along, screen-up), in LPS.
+# Camera of each mesh view: (direction the camera looks along, screen-up), in LPS.
 # screen-right = look x up, so no view is mirrored (anterior view: patient's left on the right).
 _VIEWS = {
     "anterior": ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
@@ -52,51 +68,313 @@ _SLICE_LAYOUT = {
     0: ("sagittal", 1, +1, 2, +1),
 }
 _AXIS_LETTERS = {0: ("R", "L"), 1: ("A", "P"), 2: ("I", "S")}
+_OFFSCREEN_ENV = "BONEWATERTIGHT_OFFSCREEN"
+
+
+class RenderUnavailable(DependencyError):
+    """Pictures cannot be rendered on this machine (the run goes on without one)."""
 
 
 # ----------------------------------------------------------------------------------------
-# matplotlib
+# offscreen render windows
 
-def require_matplotlib():
-    """Import matplotlib or raise DependencyError (call it early to fail before a long run)."""
+_STATUS = None
+
+
+def _new_window(width: int, height: int):
+    """An offscreen vtkRenderWindow with a working OpenGL context, or raise RenderUnavailable."""
+    if os.environ.get(_OFFSCREEN_ENV, "").strip().lower() in ("0", "off", "no", "false"):
+        raise RenderUnavailable(f"offscreen rendering is switched off ({_OFFSCREEN_ENV}=0)")
     try:
-        import matplotlib  # noqa: F401
-        from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
-        from matplotlib.figure import Figure  # noqa: F401
+        import vtkmodules.vtkRenderingOpenGL2 as gl
+        from vtkmodules.vtkRenderingCore import vtkRenderWindow
+        import vtkmodules.vtkRenderingFreeType  # noqa: F401  (text actors)
+        import vtkmodules.vtkInteractionStyle  # noqa: F401
     except ImportError as exc:
-        raise DependencyError(
-            "Pictures need matplotlib, which is not installed ({}). Install it with "
-            "'python -m pip install matplotlib' or leave out --picture.".format(exc)) from None
+        raise RenderUnavailable(f"VTK has no OpenGL rendering here ({exc})") from None
+    headless = sys.platform.startswith("linux") and not (
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+    factories = []
+    if headless:
+        # No X server: VTK's default (X) window would fail noisily; EGL works with Mesa.
+        factories += [getattr(gl, "vtkEGLRenderWindow", None), getattr(gl, "vtkOSOpenGLRenderWindow", None)]
+    factories.append(vtkRenderWindow)
+    reasons = []
+    for factory in factories:
+        if factory is None:
+            continue
+        window = factory()
+        window.SetOffScreenRendering(1)
+        window.SetSize(int(width), int(height))
+        try:
+            ok = bool(window.SupportsOpenGL())
+        except Exception as exc:  # pragma: no cover - depends on the machine's drivers
+            ok, reasons = False, reasons + [f"{type(window).__name__}: {exc}"]
+        if ok:
+            return window
+        reasons.append(f"{type(window).__name__}: no OpenGL context")
+        window.Finalize()
+    raise RenderUnavailable("no offscreen OpenGL context (" + "; ".join(reasons)
+                            + "); on Linux install libegl1 libegl-mesa0 libgl1-mesa-dri")
 
 
-def _new_figure(width_in: float, height_in: float, dpi: int):
-    require_matplotlib()
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+def offscreen_status() -> tuple:
+    """(available, reason): whether pictures can be rendered here (checked once)."""
+    global _STATUS
+    if os.environ.get(_OFFSCREEN_ENV, "").strip().lower() in ("0", "off", "no", "false"):
+        return False, f"offscreen rendering is switched off ({_OFFSCREEN_ENV}=0)"
+    if _STATUS is None:
+        try:
+            window = _new_window(8, 8)
+            window.Finalize()
+            _STATUS = (True, "")
+        except RenderUnavailable as exc:
+            _STATUS = (False, str(exc))
+    return _STATUS
 
-    fig = Figure(figsize=(width_in, height_in), dpi=dpi, facecolor="white")
-    FigureCanvasAgg(fig)
-    return fig
 
+def _write_png(window, path) -> None:
+    """Render, average SUPERSAMPLE x SUPERSAMPLE pixel blocks, write the PNG."""
+    import vtk
+    from vtk.util import numpy_support as ns
 
-def _save(fig, path) -> None:
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(folder):
-        raise InputError(f"Output folder does not exist: {folder}")
-    # format given explicitly: the CLI writes to a temporary name before renaming it.
-    fig.savefig(path, format="png", dpi=fig.dpi, facecolor=fig.get_facecolor())
+    window.Render()
+    grab = vtk.vtkWindowToImageFilter()
+    grab.SetInput(window)
+    grab.SetInputBufferTypeToRGB()
+    grab.ReadFrontBufferOff()
+    grab.Update()
+    big = grab.GetOutput()
+    w, h, _ = big.GetDimensions()
+    pixels = ns.vtk_to_numpy(big.GetPointData().GetScalars()).reshape(h, w, 3).astype(np.float32)
+    f = SUPERSAMPLE
+    small = pixels[: h - h % f, : w - w % f].reshape(h // f, f, w // f, f, 3).mean(axis=(1, 3))
+    out = vtk.vtkImageData()
+    out.SetDimensions(w // f, h // f, 1)
+    out.GetPointData().SetScalars(ns.numpy_to_vtk(
+        np.ascontiguousarray(np.rint(small).astype(np.uint8).reshape(-1, 3)), deep=True,
+        array_type=vtk.VTK_UNSIGNED_CHAR))
+    writer = vtk.vtkPNGWriter()
+    writer.SetInputData(out)
+    writer.SetFileName(os.fspath(path))
+    writer.Write()
+    if writer.GetErrorCode():
+        raise OSError(f"VTK could not write {path} (error code {writer.GetErrorCode()}).")
 
 
 # ----------------------------------------------------------------------------------------
-# mesh views
+# building blocks
 
-def _as_lps(surface: Surface) -> Surface:
-    if not isinstance(surface, Surface):
-        raise InputError("render: expected a BoneWatertightLib.mesh.Surface.")
-    if surface.n_faces == 0:
-        raise InputError("render: the surface has no triangles.")
-    return surface.to_lps() if surface.coordinate_system == "RAS" else surface
+def _text(renderer, text, x, y, size=14, color=(0.1, 0.1, 0.1), bold=False, align="left",
+          valign="bottom"):
+    """A text actor at normalized viewport position (x, y)."""
+    import vtk
+
+    actor = vtk.vtkTextActor()
+    actor.SetInput(text)
+    prop = actor.GetTextProperty()
+    prop.SetFontSize(int(size * SUPERSAMPLE))
+    prop.SetColor(*color)
+    prop.SetBold(bool(bold))
+    prop.SetJustification({"left": 0, "center": 1, "right": 2}[align])
+    prop.SetVerticalJustification({"bottom": 0, "center": 1, "top": 2}[valign])
+    actor.GetPositionCoordinate().SetCoordinateSystemToNormalizedViewport()
+    actor.SetPosition(x, y)
+    renderer.AddViewProp(actor)
+    return actor
+
+
+def _lookup_table(vmin: float, vmax: float):
+    import vtk
+
+    lut = vtk.vtkLookupTable()
+    lut.SetNumberOfTableValues(256)
+    lut.SetRange(vmin, vmax)
+    xs = np.linspace(0.0, 1.0, len(VIRIDIS))
+    rgb = np.array(VIRIDIS)
+    for i, t in enumerate(np.linspace(0.0, 1.0, 256)):
+        lut.SetTableValue(i, *[float(np.interp(t, xs, rgb[:, c])) for c in range(3)], 1.0)
+    lut.SetBelowRangeColor(*VIRIDIS[0], 1.0)
+    lut.SetAboveRangeColor(*VIRIDIS[-1], 1.0)
+    lut.UseBelowRangeColorOn()
+    lut.UseAboveRangeColorOn()
+    lut.Build()
+    return lut
+
+
+def _scale_bar(renderer, span_mm: float, px_per_mm: float, panel_px: int):
+    """A black scale bar (nice length) with its label at the lower left of a view."""
+    import vtk
+
+    nice = [1, 2, 5, 10, 20, 25, 50, 100, 200, 500]
+    length = max([n for n in nice if n <= span_mm / 3.0] or [nice[0]])
+    x0, y0 = 0.05, 0.06
+    x1 = x0 + length * px_per_mm / panel_px
+    points = vtk.vtkPoints()
+    points.InsertNextPoint(x0, y0, 0.0)
+    points.InsertNextPoint(x1, y0, 0.0)
+    lines = vtk.vtkCellArray()
+    lines.InsertNextCell(2)
+    lines.InsertCellPoint(0)
+    lines.InsertCellPoint(1)
+    poly = vtk.vtkPolyData()
+    poly.SetPoints(points)
+    poly.SetLines(lines)
+    coordinate = vtk.vtkCoordinate()
+    coordinate.SetCoordinateSystemToNormalizedViewport()
+    mapper = vtk.vtkPolyDataMapper2D()
+    mapper.SetInputData(poly)
+    mapper.SetTransformCoordinate(coordinate)
+    actor = vtk.vtkActor2D()
+    actor.SetMapper(mapper)
+    actor.GetProperty().SetColor(0.05, 0.05, 0.05)
+    actor.GetProperty().SetLineWidth(3.0 * SUPERSAMPLE)
+    renderer.AddViewProp(actor)
+    _text(renderer, f"{length:g} mm", x1 + 0.015, y0, size=12, valign="center")
+
+
+def _surface_view(renderer, poly, surface: Surface, view, lut, panel_px: int):
+    """Shaded, lit, parallel-projection view of the surface from one direction."""
+    import vtk
+
+    look, up, right = _camera(view)
+    mapper = vtk.vtkPolyDataMapper()
+    mapper.SetInputData(poly)
+    if lut is not None:
+        mapper.SetLookupTable(lut)
+        mapper.SetScalarModeToUsePointFieldData()
+        mapper.SelectColorArray("RenderScalars")
+        mapper.SetUseLookupTableScalarRange(True)
+        mapper.ScalarVisibilityOn()
+    else:
+        mapper.ScalarVisibilityOff()
+    actor = vtk.vtkActor()
+    actor.SetMapper(mapper)
+    prop = actor.GetProperty()
+    prop.SetInterpolationToPhong()
+    prop.SetColor(*BONE_RGB)
+    prop.SetAmbient(0.12)
+    prop.SetDiffuse(0.82)
+    prop.SetSpecular(0.18)
+    prop.SetSpecularPower(25.0)
+    renderer.AddActor(actor)
+    renderer.SetBackground(1.0, 1.0, 1.0)
+    renderer.SetBackground2(0.86, 0.88, 0.92)
+    renderer.GradientBackgroundOn()
+
+    centre = 0.5 * (surface.vertices.min(axis=0) + surface.vertices.max(axis=0))
+    proj_r, proj_u = surface.vertices @ right, surface.vertices @ up
+    width, height = np.ptp(proj_r), np.ptp(proj_u)
+    mid = centre + right * (0.5 * (proj_r.max() + proj_r.min()) - centre @ right) \
+        + up * (0.5 * (proj_u.max() + proj_u.min()) - centre @ up)
+    radius = float(np.linalg.norm(surface.vertices - mid, axis=1).max())
+    camera = renderer.GetActiveCamera()
+    camera.ParallelProjectionOn()
+    camera.SetFocalPoint(*(mid + up * 0.06 * max(width, height)))
+    camera.SetPosition(*(mid + up * 0.06 * max(width, height) - look * (3.0 * radius + 10.0)))
+    camera.SetViewUp(*up)
+    half = 0.5 * max(height, width) * 1.22
+    camera.SetParallelScale(half)
+    renderer.ResetCameraClippingRange()
+    # Light kit: key light from the viewer's upper left, fill and back lights, so creases
+    # read in relief as in Slicer's 3D view.
+    kit = vtk.vtkLightKit()
+    kit.SetKeyLightIntensity(0.85)
+    kit.AddLightsToRenderer(renderer)
+    name = view if isinstance(view, str) else "view"
+    _text(renderer, f"{name}   (right: {_direction_letter(right)}, up: {_direction_letter(up)})",
+          0.5, 0.965, size=15, align="center", valign="top", bold=True)
+    px_per_mm = panel_px / (2.0 * half)
+    _scale_bar(renderer, max(width, height), px_per_mm, panel_px)
+
+
+def _section_view(renderer, ct, array_zyx, axis, centre_idx, surfaces, colors, window,
+                  margin_mm, show_legend=False):
+    """One CT index plane in a bone window with the surfaces' cross-sections over it."""
+    import vtk
+    from vtk.util import numpy_support as ns
+
+    frame = _SliceFrame(ct, axis, centre_idx[axis])
+    plane = np.asarray(frame.image(array_zyx), dtype=np.float64)
+    lo_w, hi_w = window
+    grey = (np.clip((plane - lo_w) / (hi_w - lo_w), 0.0, 1.0) * 255.0).astype(np.uint8)
+    rgb = np.repeat(grey[..., None], 3, axis=2)
+    image = vtk.vtkImageData()
+    image.SetDimensions(rgb.shape[1], rgb.shape[0], 1)
+    image.SetSpacing(frame.spacing[frame.h], frame.spacing[frame.v], 1.0)
+    image.SetOrigin(0.0, 0.0, 0.0)
+    scalars = ns.numpy_to_vtk(np.ascontiguousarray(rgb).reshape(-1, 3), deep=True,
+                              array_type=vtk.VTK_UNSIGNED_CHAR)
+    image.GetPointData().SetScalars(scalars)
+    slice_actor = vtk.vtkImageActor()
+    slice_actor.GetMapper().SetInputData(image)
+    slice_actor.InterpolateOff()
+    renderer.AddActor(slice_actor)
+    renderer.SetBackground(0.0, 0.0, 0.0)
+
+    boxes = []
+    for (name, surface), color in zip(surfaces.items(), colors):
+        idx = physical_to_index(ct, surface.vertices)
+        seg = plane_section(idx, surface.faces, axis, float(frame.index_value))
+        disp_all = frame.display(idx)
+        boxes.append((disp_all.min(axis=0), disp_all.max(axis=0)))
+        if not len(seg):
+            continue
+        lines2d = frame.display(seg.reshape(-1, 3))
+        points = vtk.vtkPoints()
+        points.SetData(ns.numpy_to_vtk(np.column_stack([lines2d, np.full(len(lines2d), 0.5)]),
+                                       deep=True))
+        ids = np.column_stack([np.full(len(seg), 2), np.arange(0, 2 * len(seg), 2),
+                               np.arange(1, 2 * len(seg), 2)]).ravel()
+        cells = vtk.vtkCellArray()
+        cells.ImportLegacyFormat(ns.numpy_to_vtkIdTypeArray(ids.astype(np.int64), deep=True))
+        poly = vtk.vtkPolyData()
+        poly.SetPoints(points)
+        poly.SetLines(cells)
+        mapper = vtk.vtkPolyDataMapper()
+        mapper.SetInputData(poly)
+        actor = vtk.vtkActor()
+        actor.SetMapper(mapper)
+        actor.GetProperty().SetColor(*color)
+        actor.GetProperty().SetLineWidth(2.0 * SUPERSAMPLE)
+        actor.GetProperty().LightingOff()
+        renderer.AddActor(actor)
+    ext = frame.extent()
+    if boxes:
+        lo = np.min([b[0] for b in boxes], axis=0) - margin_mm
+        hi = np.max([b[1] for b in boxes], axis=0) + margin_mm
+        lo = np.maximum(lo, [ext[0], ext[2]])
+        hi = np.minimum(hi, [ext[1], ext[3]])
+    else:
+        lo, hi = np.array([ext[0], ext[2]]), np.array([ext[1], ext[3]])
+    mid = 0.5 * (lo + hi)
+    camera = renderer.GetActiveCamera()
+    camera.ParallelProjectionOn()
+    camera.SetFocalPoint(mid[0], mid[1], 0.0)
+    camera.SetPosition(mid[0], mid[1], 100.0)
+    camera.SetViewUp(0.0, 1.0, 0.0)
+    camera.SetParallelScale(0.5 * max(hi[0] - lo[0], hi[1] - lo[1]) * 1.12)
+    renderer.ResetCameraClippingRange()
+    letters = dict(size=17, color=(1.0, 0.92, 0.1), bold=True)
+    _text(renderer, frame.h_letters[0], 0.015, 0.5, valign="center", **letters)
+    _text(renderer, frame.h_letters[1], 0.985, 0.5, align="right", valign="center", **letters)
+    _text(renderer, frame.v_letters[0], 0.5, 0.015, align="center", **letters)
+    _text(renderer, frame.v_letters[1], 0.5, 0.94, align="center", valign="top", **letters)
+    _text(renderer, f"{frame.name}, {'ijk'[axis]} = {frame.index_value}", 0.03, 0.975, size=14,
+          color=(1.0, 1.0, 1.0), bold=True, valign="top")
+    if show_legend:
+        for k, ((name, _), color) in enumerate(zip(surfaces.items(), colors)):
+            _text(renderer, name, 0.97, 0.05 + 0.05 * k, size=13, color=color, bold=True,
+                  align="right")
+
+
+def _renderer(window, x0, y0, x1, y1):
+    import vtk
+
+    renderer = vtk.vtkRenderer()
+    renderer.SetViewport(x0, y0, x1, y1)
+    window.AddRenderer(renderer)
+    return renderer
 
 
 def _camera(view: Union[str, tuple]):
@@ -113,6 +391,14 @@ def _camera(view: Union[str, tuple]):
     up = up / np.linalg.norm(up)
     right = np.cross(look, up)
     return look, up, right
+
+
+def _as_lps(surface: Surface) -> Surface:
+    if not isinstance(surface, Surface):
+        raise InputError("render: expected a BoneWatertightLib.mesh.Surface.")
+    if surface.n_faces == 0:
+        raise InputError("render: the surface has no triangles.")
+    return surface.to_lps() if surface.coordinate_system == "RAS" else surface
 
 
 def _resolve_scalars(surface: Surface, scalars) -> Optional[np.ndarray]:
@@ -134,89 +420,12 @@ def _resolve_scalars(surface: Surface, scalars) -> Optional[np.ndarray]:
     return values
 
 
-def shade_faces(vertices: np.ndarray, faces: np.ndarray, look: np.ndarray, up: np.ndarray,
-                face_values: Optional[np.ndarray] = None, cmap=None, norm=None,
-                max_faces: int = MAX_DRAWN_FACES, seed: int = 0):
-    """Polygons (k, 3, 3) in view order (far to near) and their RGB colours (k, 3).
-
-    ``look``/``up``: unit camera direction and screen-up. Flat Lambert shading with the light
-    from behind the viewer's upper left, so creases read in relief; back faces of a closed,
-    outward-oriented surface are hidden by the front ones and are culled. The painter's
-    algorithm (sort by depth) replaces a z-buffer.
-    """
-    tri = vertices[faces]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(normal, axis=1)
-    normal = normal / np.maximum(length, 1e-300)[:, None]
-    facing = -(normal @ look)
-    keep = np.flatnonzero((facing > 0.0) & (length > 0.0))
-    if keep.size > max_faces:
-        keep = np.sort(np.random.default_rng(seed).choice(keep, max_faces, replace=False))
-    tri, normal = tri[keep], normal[keep]
-    depth = tri.mean(axis=1) @ look
-    order = np.argsort(-depth, kind="stable")  # farthest first
-    tri, normal, keep = tri[order], normal[order], keep[order]
-
-    right = np.cross(look, up)
-    light = -look + 0.45 * up - 0.35 * right
-    light = light / np.linalg.norm(light)
-    lambert = np.clip(normal @ light, 0.0, 1.0)
-    intensity = 0.28 + 0.72 * lambert
-    if face_values is None:
-        base = np.broadcast_to(BONE_RGB, (len(keep), 3))
-    else:
-        base = np.asarray(cmap(norm(face_values[keep])))[:, :3]
-    colors = np.clip(base * intensity[:, None], 0.0, 1.0)
-    return tri, colors
-
-
-def _draw_mesh_view(ax, surface: Surface, view, values, cmap, norm, max_faces):
-    from matplotlib.collections import PolyCollection
-
-    look, up, right = _camera(view)
-    face_values = None if values is None else values[surface.faces].mean(axis=1)
-    tri, colors = shade_faces(surface.vertices, surface.faces, look, up, face_values, cmap,
-                              norm, max_faces)
-    xy = np.stack([tri @ right, tri @ up], axis=-1)
-    coll = PolyCollection(xy, facecolors=colors, edgecolors="none", linewidths=0.0,
-                          antialiased=False)
-    ax.add_collection(coll)
-    proj = np.stack([surface.vertices @ right, surface.vertices @ up], axis=-1)
-    lo, hi = proj.min(axis=0), proj.max(axis=0)
-    pad = 0.04 * max(hi - lo) + 1e-6
-    ax.set_xlim(lo[0] - pad, hi[0] + pad)
-    # Room below the mesh for the scale bar.
-    ax.set_ylim(lo[1] - 4.0 * pad, hi[1] + pad)
-    ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    for spine in ax.spines.values():
-        spine.set_visible(False)
-    name = view if isinstance(view, str) else "view"
-    ax.set_title(f"{name}  ({_direction_letter(right)}\u2192, {_direction_letter(up)}\u2191)",
-                 fontsize=9)
-    _scale_bar(ax, lo, hi, pad)
-
 
 def _direction_letter(vector: np.ndarray) -> str:
     axis = int(np.argmax(np.abs(vector)))
     return _AXIS_LETTERS[axis][1 if vector[axis] > 0 else 0]
 
 
-def _scale_bar(ax, lo, hi, pad):
-    span = float(max(hi - lo))
-    if span <= 0:
-        return
-    nice = [1, 2, 5, 10, 20, 25, 50, 100, 200, 500]
-    length = max([n for n in nice if n <= span / 3.0] or [nice[0]])
-    x0, y0 = lo[0], lo[1] - 3.0 * pad
-    ax.plot([x0, x0 + length], [y0, y0], color="black", linewidth=2, solid_capstyle="butt")
-    ax.text(x0 + length + 0.3 * pad, y0, f"{length:g} mm", ha="left", va="center",
-            fontsize=7)
-
-
-# ----------------------------------------------------------------------------------------
-# CT slices and cross-sections
 
 def _index_matrix(ct):
     """(M, origin): continuous index = M^-1 (p - origin), M = direction @ diag(spacing)."""
@@ -333,49 +542,6 @@ def _centre_index(ct, centre_lps) -> np.ndarray:
     return np.clip(idx, 0, np.array(ct.GetSize()) - 1).astype(int)
 
 
-def _draw_slice(ax, ct, array_zyx, axis, centre_idx, surfaces, colors, window, margin_mm,
-                show_legend=False):
-    from matplotlib.collections import LineCollection
-
-    frame = _SliceFrame(ct, axis, centre_idx[axis])
-    ax.imshow(frame.image(array_zyx), cmap="gray", vmin=window[0], vmax=window[1],
-              origin="lower", extent=frame.extent(), interpolation="nearest")
-    boxes = []
-    handles = []
-    for (name, surface), color in zip(surfaces.items(), colors):
-        idx = physical_to_index(ct, surface.vertices)
-        seg = plane_section(idx, surface.faces, axis, float(frame.index_value))
-        disp_all = frame.display(idx)
-        boxes.append((disp_all.min(axis=0), disp_all.max(axis=0)))
-        if len(seg):
-            lines = frame.display(seg.reshape(-1, 3)).reshape(-1, 2, 2)
-            ax.add_collection(LineCollection(lines, colors=color, linewidths=1.3))
-        handles.append((name, color))
-    if boxes:
-        lo = np.min([b[0] for b in boxes], axis=0) - margin_mm
-        hi = np.max([b[1] for b in boxes], axis=0) + margin_mm
-        ext = frame.extent()
-        lo = np.maximum(lo, [ext[0], ext[2]])
-        hi = np.minimum(hi, [ext[1], ext[3]])
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-    ax.set_aspect("equal")
-    ax.set_xticks([])
-    ax.set_yticks([])
-    ijk = "ijk"[axis]
-    ax.set_title(f"{frame.name}, {ijk} = {frame.index_value}", fontsize=9)
-    # Orientation letters at the picture edges.
-    style = dict(transform=ax.transAxes, color="yellow", fontsize=8, fontweight="bold")
-    ax.text(0.01, 0.5, frame.h_letters[0], ha="left", va="center", **style)
-    ax.text(0.99, 0.5, frame.h_letters[1], ha="right", va="center", **style)
-    ax.text(0.5, 0.01, frame.v_letters[0], ha="center", va="bottom", **style)
-    ax.text(0.5, 0.99, frame.v_letters[1], ha="center", va="top", **style)
-    if show_legend and handles:
-        from matplotlib.lines import Line2D
-
-        ax.legend([Line2D([0], [0], color=c, linewidth=2) for _, c in handles],
-                  [n for n, _ in handles], loc="lower right", fontsize=7, framealpha=0.7)
-
 
 def _ct_array(ct) -> np.ndarray:
     import SimpleITK as sitk
@@ -393,29 +559,53 @@ def render_surface(surface: Surface, path, ct=None, title: Optional[str] = None,
                    scalar_range: Optional[Sequence[float]] = None,
                    views: Sequence = ("anterior", "left", "superior"),
                    window: Sequence[float] = DEFAULT_WINDOW, margin_mm: float = 15.0,
-                   max_faces: int = MAX_DRAWN_FACES, dpi: int = 110,
-                   cmap: str = "viridis") -> str:
-    """Write one PNG: shaded views of ``surface`` and, with ``ct``, three CT slices.
+                   panel_px: int = PANEL_PX) -> str:
+    """Write one PNG: a title line, shaded views of ``surface`` and, with ``ct``, three CT
+    sections with the surface's cross-section.
 
-    ``scalars``: per-vertex values (array of n_vertices, in mm) or the name of a point-data
-    array to colour the views by, with a colour bar; ``"auto"`` (default) uses
-    "DistanceToConstraints" when the surface has it, ``None`` draws plain bone colour.
-    ``ct`` (SimpleITK image, LPS): the three index planes nearest the surface centroid are
-    shown with the surface's cross-section drawn over them. Returns ``path``.
+    Parameters
+    ----------
+    surface : Surface
+        LPS or RAS (converted to LPS for drawing).
+    path : str or os.PathLike
+        The PNG to write (its folder must exist).
+    ct : SimpleITK.Image, optional
+        The CT (LPS). The three index planes nearest the surface centroid are shown.
+    title : str, optional
+        First words of the title line (e.g. the segment name).
+    scalars : "auto", str, (n_vertices,) array or None
+        Per-vertex values (mm) to colour the views by, with a colour bar: ``"auto"`` uses
+        "DistanceToConstraints" when the surface has it, a string names a point-data array,
+        ``None`` draws plain bone colour.
+    scalar_label : str, optional
+        Colour-bar title.
+    scalar_range : (min, max), optional
+        Colour range; default 0 (or the minimum) to the 99th percentile.
+    views : sequence of view names or (look, up) pairs
+    window : (low, high)
+        HU window of the CT sections.
+    margin_mm : float
+        Margin around the surface in the sections.
+    panel_px : int
+        Size of one view in pixels.
+
+    Returns
+    -------
+    str
+        ``path``.
+
+    Raises
+    ------
+    RenderUnavailable
+        No offscreen OpenGL context on this machine.
     """
+    import vtk
+    from vtk.util import numpy_support as ns
+
     surface = _as_lps(surface)
     values = _resolve_scalars(surface, scalars)
-    n_views = len(views)
-    rows = 2 if ct is not None else 1
-    fig = _new_figure(3.3 * max(n_views, 3) + (0.9 if values is not None else 0.0),
-                      3.5 * rows + 0.5, dpi)
-    import matplotlib
-
-    cmap_obj = matplotlib.colormaps[cmap]
-    norm = None
+    lut = None
     if values is not None:
-        from matplotlib.colors import Normalize
-
         finite = values[np.isfinite(values)]
         if scalar_range is not None:
             vmin, vmax = (float(v) for v in scalar_range)
@@ -426,55 +616,105 @@ def render_surface(surface: Surface, path, ct=None, title: Optional[str] = None,
             vmin, vmax = 0.0, 1.0
         if not vmax > vmin:
             vmax = vmin + 1.0
-        norm = Normalize(vmin=vmin, vmax=vmax, clip=True)
         values = np.where(np.isfinite(values), values, vmax)
-
-    grid = fig.add_gridspec(rows, max(n_views, 3), left=0.02, right=0.9 if values is not None
-                            else 0.98, top=0.9 if rows == 2 else 0.84, bottom=0.03, wspace=0.08,
-                            hspace=0.18)
-    mesh_axes = []
-    for col, view in enumerate(views):
-        ax = fig.add_subplot(grid[0, col])
-        _draw_mesh_view(ax, surface, view, values, cmap_obj, norm, max_faces)
-        mesh_axes.append(ax)
-    if values is not None:
-        from matplotlib.cm import ScalarMappable
-
-        mappable = ScalarMappable(norm=norm, cmap=cmap_obj)
-        cax = fig.add_axes([0.915, 0.55 if rows == 2 else 0.12, 0.015,
-                            0.33 if rows == 2 else 0.7])
-        label = scalar_label or (scalars if isinstance(scalars, str) and scalars != "auto"
-                                 else ("distance to constraints" if isinstance(scalars, str)
-                                       else "scalar"))
-        fig.colorbar(mappable, cax=cax).set_label(f"{label} (mm)", fontsize=8)
-        cax.tick_params(labelsize=7)
-
-    if ct is not None:
-        array = _ct_array(ct)
-        centre = surface.vertices.mean(axis=0)
-        centre_idx = _centre_index(ct, centre)
-        # k plane first: for the usual axial CT that is the axial slice.
-        for col, axis in enumerate((2, 1, 0)):
-            ax = fig.add_subplot(grid[1, col])
-            _draw_slice(ax, ct, array, axis, centre_idx, {"surface": surface},
-                        [CONTOUR_COLORS[0]], window, margin_mm)
-
-    heading = title or "surface"
-    fig.suptitle(f"{heading}: {surface.n_vertices} vertices, {surface.n_faces} triangles "
-                 f"({surface.coordinate_system} mm)", fontsize=11)
-    _save(fig, path)
+        lut = _lookup_table(vmin, vmax)
+    columns = max(len(views), 3 if ct is not None else 1)
+    rows = 2 if ct is not None else 1
+    extra = COLORBAR_PX if lut is not None else 0
+    width = columns * panel_px + extra
+    height = rows * panel_px + TITLE_PX
+    render_window = _new_window(width * SUPERSAMPLE, height * SUPERSAMPLE)
+    try:
+        poly = to_polydata(Surface(surface.vertices, surface.faces), normals=True)
+        if values is not None:
+            arr = ns.numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64), deep=True)
+            arr.SetName("RenderScalars")
+            poly.GetPointData().AddArray(arr)
+        top = 1.0 - TITLE_PX / height
+        row_h = (top - 0.0) / rows
+        col_w = panel_px / width
+        for col, view in enumerate(views):
+            ren = _renderer(render_window, col * col_w, top - row_h, (col + 1) * col_w, top)
+            _surface_view(ren, poly, surface, view, lut, panel_px * SUPERSAMPLE)
+        if lut is not None:
+            ren = _renderer(render_window, columns * col_w, top - row_h, 1.0, top)
+            ren.SetBackground(1.0, 1.0, 1.0)
+            bar = vtk.vtkScalarBarActor()
+            bar.SetLookupTable(lut)
+            label = scalar_label or (scalars if isinstance(scalars, str) and scalars != "auto"
+                                     else ("distance to constraints" if isinstance(scalars, str)
+                                           else "value"))
+            bar.SetNumberOfLabels(6)
+            bar.SetLabelFormat("%.2f")
+            bar.SetBarRatio(0.3)
+            bar.UnconstrainedFontSizeOn()
+            for prop in (bar.GetLabelTextProperty(),):
+                prop.SetColor(0.1, 0.1, 0.1)
+                prop.SetFontSize(13 * SUPERSAMPLE)
+                prop.ItalicOff()
+                prop.ShadowOff()
+            bar.GetPositionCoordinate().SetCoordinateSystemToNormalizedViewport()
+            bar.SetPosition(0.1, 0.06)
+            bar.SetWidth(0.85)
+            bar.SetHeight(0.68)
+            ren.AddViewProp(bar)
+            for k, line in enumerate(label.split(" ", 1) + ["(mm)"]):
+                _text(ren, line, 0.5, 0.93 - 0.045 * k, size=13, bold=True, align="center",
+                      valign="top")
+        if ct is not None:
+            array = _ct_array(ct)
+            centre_idx = _centre_index(ct, surface.vertices.mean(axis=0))
+            # k plane first: for the usual axial CT that is the axial slice.
+            for col, axis in enumerate((2, 1, 0)):
+                ren = _renderer(render_window, col * col_w, 0.0, (col + 1) * col_w, row_h)
+                _section_view(ren, ct, array, axis, centre_idx, {"surface": surface},
+                              [CONTOUR_COLORS[0]], window, margin_mm)
+            if extra:
+                ren = _renderer(render_window, columns * col_w, 0.0, 1.0, row_h)
+                ren.SetBackground(0.0, 0.0, 0.0)
+                _text(ren, "surface", 0.5, 0.52, size=13, color=CONTOUR_COLORS[0], bold=True,
+                      align="center")
+                _text(ren, "over CT", 0.5, 0.46, size=13, color=(1.0, 1.0, 1.0), align="center")
+                _text(ren, f"W {window[0]:g}..{window[1]:g}", 0.5, 0.40, size=11,
+                      color=(0.8, 0.8, 0.8), align="center")
+        ren = _renderer(render_window, 0.0, top, 1.0, 1.0)
+        ren.SetBackground(1.0, 1.0, 1.0)
+        heading = title or "surface"
+        _text(ren, f"{heading}: {surface.n_vertices} vertices, {surface.n_faces} triangles "
+                   f"({surface.coordinate_system} mm)", 0.01, 0.5, size=20, bold=True,
+              valign="center")
+        _write_png(render_window, path)
+    finally:
+        render_window.Finalize()
     return os.fspath(path)
 
 
 def render_cross_sections(ct, surfaces: dict, path, center=None, title: Optional[str] = None,
-                          colors: Optional[Sequence[str]] = None,
+                          colors: Optional[Sequence] = None,
                           window: Sequence[float] = DEFAULT_WINDOW, margin_mm: float = 15.0,
-                          axes: Sequence[int] = (2, 1, 0), dpi: int = 110) -> str:
-    """Write one PNG with the contours of several surfaces over the same CT slices.
+                          axes: Sequence[int] = (2, 1, 0), panel_px: int = PANEL_PX) -> str:
+    """Write one PNG with the contours of several surfaces over the same CT sections.
 
-    ``surfaces``: name -> Surface (e.g. one per method). The slices are the CT index planes
-    nearest ``center`` (physical LPS; default: the centroid of the first surface's
-    vertices). ``axes``: which index planes (0 = i, 1 = j, 2 = k). Returns ``path``.
+    Parameters
+    ----------
+    ct : SimpleITK.Image
+    surfaces : dict
+        name -> Surface (e.g. one per method); the first section has a legend.
+    path : str or os.PathLike
+    center : (3,) array, optional
+        Physical LPS point the sections pass through (default: the first surface's centroid).
+    title : str, optional
+    colors : sequence of RGB triples (0-1), optional
+    window : (low, high)
+    margin_mm : float
+    axes : sequence of int
+        Index planes to show (0 = i, 1 = j, 2 = k).
+    panel_px : int
+
+    Returns
+    -------
+    str
+        ``path``.
     """
     if not surfaces:
         raise InputError("render_cross_sections: no surface given.")
@@ -486,18 +726,20 @@ def render_cross_sections(ct, surfaces: dict, path, center=None, title: Optional
     if center is None:
         center = next(iter(named.values())).vertices.mean(axis=0)
     centre_idx = _centre_index(ct, center)
-    fig = _new_figure(3.6 * len(axes), 4.0, dpi)
-    grid = fig.add_gridspec(1, len(axes), left=0.02, right=0.98, top=0.86, bottom=0.03,
-                            wspace=0.06)
-    for col, axis in enumerate(axes):
-        ax = fig.add_subplot(grid[0, col])
-        _draw_slice(ax, ct, array, int(axis), centre_idx, named, colors, window, margin_mm,
-                    show_legend=(col == 0))
-    if title:
-        fig.suptitle(title, fontsize=11)
-    _save(fig, path)
+    title_px = TITLE_PX if title else 0
+    width, height = len(axes) * panel_px, panel_px + title_px
+    render_window = _new_window(width * SUPERSAMPLE, height * SUPERSAMPLE)
+    try:
+        top = 1.0 - title_px / height
+        for col, axis in enumerate(axes):
+            ren = _renderer(render_window, col / len(axes), 0.0, (col + 1) / len(axes), top)
+            _section_view(ren, ct, array, int(axis), centre_idx, named, colors, window,
+                          margin_mm, show_legend=(col == 0))
+        if title:
+            ren = _renderer(render_window, 0.0, top, 1.0, 1.0)
+            ren.SetBackground(1.0, 1.0, 1.0)
+            _text(ren, title, 0.01, 0.5, size=18, bold=True, valign="center")
+        _write_png(render_window, path)
+    finally:
+        render_window.Finalize()
     return os.fspath(path)
-
-
-class RenderUnavailable(DependencyError):
-    """Pictures cannot be rendered on this machine (the run goes on without one)."""
