@@ -105,12 +105,9 @@ def summary(report: CaseReport) -> str:
     if dist.n:
         lines.append(f"distance to constraints: mean {dist.mean:.2f} mm, "
                      f"p95 {dist.p95:.2f} mm, max {dist.max:.2f} mm")
-    stages = report.timings_s.stages
     lines += [
         f"time:            {report.timings_s.total:.1f} s "
-        f"(reconstruction {report.timings_s.reconstruct:.1f} s, of which open3d import "
-        f"{stages.import_open3d:.1f} s, threshold {stages.threshold:.1f} s, deformation "
-        f"{stages.deform:.1f} s)",
+        f"(reconstruction {report.timings_s.reconstruct:.1f} s)",
         f"coordinates:     physical {out.coordinate_system} mm (as ITK; 3D Slicer reads the "
         "SPACE tag in the files)",
         f"surface:         {out.path}",
