@@ -1,4 +1,4 @@
-"""``python -m BoneWatertightLib``: see :mod:`BoneWatertightLib.cli`."""
+"""``python -m BoneWatertightLib``: see :mod:`BoneWatertightLib.app.cli`."""
 
 import sys
 

@@ -48,7 +48,7 @@ class ReconstructionError(BoneWatertightError):
 class SurfaceCheckError(ReconstructionError):
     """A surface failed the watertight 2-manifold checks of SPEC §4.
 
-    ``report`` holds the :class:`~BoneWatertightLib.checks.SurfaceReport` that failed.
+    ``report`` holds the :class:`~BoneWatertightLib.mesh.checks.SurfaceReport` that failed.
     """
 
     def __init__(self, message, report=None):

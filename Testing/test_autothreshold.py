@@ -1,4 +1,4 @@
-"""BoneWatertightLib.autothreshold: H0/HT proposal from the HU histogram around the segment."""
+"""BoneWatertightLib.stages.autothreshold: H0/HT proposal from the HU histogram around the segment."""
 
 import numpy as np
 import pytest

@@ -60,10 +60,18 @@ def test_pip_install_gives_the_bonewatertight_command(tmp_path):
     """pip install <checkout> (no network: the dependencies are this environment's), then the
     console command from another folder, with the checkout nowhere on the path."""
     target = tmp_path / "site"
+    # The checkout's packaging inputs (what an sdist holds), copied so that setuptools' in-tree
+    # build folder never lands in (or is reused from) the working copy.
+    checkout = tmp_path / "checkout"
+    checkout.mkdir()
+    for name in ("pyproject.toml", "README.md", "LICENSE"):
+        shutil.copy2(ROOT / name, checkout / name)
+    shutil.copytree(LIB, checkout / "BoneWatertightLib",
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     proc = subprocess.run(
         [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation",
-         "--target", str(target), str(ROOT)], capture_output=True, text=True, encoding="utf-8", timeout=300,
-        cwd=tmp_path)
+         "--target", str(target), str(checkout)], capture_output=True, text=True,
+        encoding="utf-8", timeout=300, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     installed = sorted(p.relative_to(target).as_posix() for p in
                        (target / "BoneWatertightLib").rglob("*.py") if "__pycache__" not in p.parts)
