@@ -4,11 +4,13 @@ Outside Slicer the library works in physical LPS coordinates like ITK. Every sur
 states its coordinate system the way 3D Slicer does (``SPACE=LPS`` / ``SPACE=RAS`` in the STL
 header, a PLY or OBJ comment, a ``SPACE`` field-data string in VTP/VTK), so Slicer and
 :func:`read_surface` put the model back in the right place. Every file is written atomically
-(:func:`~BoneWatertightLib.io.files.atomic_path`).
+(:func:`~BoneWatertightLib.io.files.atomic_path`), or staged into the caller's
+:class:`~BoneWatertightLib.io.files.OutputTransaction`.
 """
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 from typing import Optional
@@ -17,7 +19,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..mesh.surface import Surface, from_polydata, to_polydata
-from .files import PathLike, atomic_path, extension as _extension
+from .files import OutputTransaction, PathLike, atomic_path, extension as _extension
 
 SURFACE_EXTENSIONS = (".stl", ".ply", ".vtp", ".vtk", ".obj")
 COORDINATE_SYSTEMS = ("LPS", "RAS")
@@ -28,12 +30,16 @@ _SPACE_RE = re.compile(r"SPACE\s*=\s*(LPS|RAS)", re.IGNORECASE)
 # ----------------------------------------------------------------------------------------
 # surfaces
 
-def write_surface(surface: Surface, path: PathLike, coordinate_system: str = "LPS") -> str:
+def write_surface(surface: Surface, path: PathLike, coordinate_system: str = "LPS", *,
+                  transaction: Optional[OutputTransaction] = None) -> str:
     """Write ``surface`` to .stl/.ply/.vtp/.vtk/.obj in ``coordinate_system`` (LPS or RAS).
 
     The surface is converted from its own coordinate system if needed (x and y negated) and
     the file says which system it is in. Point-data arrays are kept in VTP and VTK; STL, OBJ
     and VTK's PLY writer cannot hold them. Returns the path written.
+
+    With ``transaction`` the file is only staged: it appears when the transaction commits.
+    A failed write raises OSError (OutputError with a transaction, naming ``path``).
     """
     path = os.fspath(path)
     system = _check_system(coordinate_system)
@@ -43,14 +49,17 @@ def write_surface(surface: Surface, path: PathLike, coordinate_system: str = "LP
                          + ", ".join(SURFACE_EXTENSIONS) + ".")
     out = surface.to_ras() if system == "RAS" else surface.to_lps()
     poly = to_polydata(out)
-    with atomic_path(path) as tmp:
-        _WRITERS[ext](poly, tmp, system)
+    _write(path, lambda tmp: _WRITERS[ext](poly, tmp, system), transaction)
     return path
 
 
 def write_points(points: np.ndarray, path: PathLike, coordinate_system: str = "LPS",
-                 source_system: str = "LPS", point_data: Optional[dict] = None) -> str:
-    """Write a point cloud (n, 3) as .ply or .vtp (vertices only), tagged with SPACE."""
+                 source_system: str = "LPS", point_data: Optional[dict] = None, *,
+                 transaction: Optional[OutputTransaction] = None) -> str:
+    """Write a point cloud (n, 3) as .ply or .vtp (vertices only), tagged with SPACE.
+
+    With ``transaction`` the file is only staged (see :func:`write_surface`).
+    """
     path = os.fspath(path)
     system = _check_system(coordinate_system)
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3).copy()
@@ -74,9 +83,17 @@ def write_points(points: np.ndarray, path: PathLike, coordinate_system: str = "L
         arr = ns.numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64), deep=True)
         arr.SetName(name)
         poly.GetPointData().AddArray(arr)
-    with atomic_path(path) as tmp:
-        _WRITERS[ext](poly, tmp, system)
+    _write(path, lambda tmp: _WRITERS[ext](poly, tmp, system), transaction)
     return path
+
+
+def _write(path, writer, transaction: Optional[OutputTransaction]) -> None:
+    """``writer(tmp)`` into a staged file of ``transaction``, or atomically on its own."""
+    if transaction is not None:
+        transaction.write(path, writer)
+        return
+    with atomic_path(path) as tmp:
+        writer(tmp)
 
 
 def _check_system(system: str) -> str:
@@ -182,8 +199,22 @@ def _write_obj(poly, path, system):
 
 def _run_writer(writer, path):
     ok = writer.Write()
-    if not ok or writer.GetErrorCode():
-        raise OSError(f"VTK could not write {path} (error code {writer.GetErrorCode()}).")
+    code = writer.GetErrorCode()
+    if ok and not code:
+        return
+    raise vtk_write_error(code, path)
+
+
+def vtk_write_error(code: int, path) -> OSError:
+    """OSError for a VTK writer's error code (below 20000 VTK stores the C errno)."""
+    import vtk
+
+    if 0 < code < 20000:
+        return OSError(code, os.strerror(code), os.fspath(path))
+    if code == vtk.vtkErrorCode.OutOfDiskSpaceError:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), os.fspath(path))
+    text = vtk.vtkErrorCode.GetStringFromErrorCode(code) if code else "unknown error"
+    return OSError(f"VTK could not write {path} ({text}, error code {code})")
 
 
 _WRITERS = {".stl": _write_stl, ".ply": _write_ply, ".vtp": _write_vtp,
