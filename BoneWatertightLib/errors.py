@@ -68,6 +68,24 @@ class OutputError(BoneWatertightError, OSError):
     """An output file could not be written (disk full, permission, ...)."""
 
 
+class CancelledBySignal(KeyboardInterrupt):
+    """SIGINT, SIGTERM or SIGHUP arrived (handled like Ctrl-C: outputs aborted, exit 130).
+
+    ``signum`` is the signal's number, ``name`` its name (``"SIGTERM"``).
+    """
+
+    def __init__(self, signum: int):
+        import signal
+
+        try:
+            name = signal.Signals(signum).name
+        except ValueError:
+            name = f"signal {signum}"
+        super().__init__(name)
+        self.signum = signum
+        self.name = name
+
+
 # ----------------------------------------------------------------------------------------
 # The one exit-code table of every command line (bonewatertight / python -m BoneWatertightLib,
 # its --cases batch, the Slicer batch script and the demo).

@@ -1,7 +1,10 @@
 """Batch runs: many cases from a CSV or a folder layout, on worker processes or a Dask cluster.
 
 Each case runs in isolation; a failed case becomes a row with its error message and the
-batch goes on. The summary table (CSV or markdown) lists every case with its status.
+batch goes on. The summary table (CSV or markdown) lists every case with its status. The files
+of each case (surface, report, intermediates) are one output transaction: they appear together
+or not at all. SIGINT, SIGTERM and SIGHUP stop the batch (exit code 130): worker processes are
+stopped, their staged files removed; the cases finished before stay written.
 """
 
 from __future__ import annotations
@@ -10,13 +13,14 @@ import csv
 import io as stringio
 import multiprocessing
 import os
+import signal
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Optional
 
-from ..errors import (EXIT_CODES, EXIT_FAILED, EXIT_INTERNAL, EXIT_OK, DependencyError,
-                      InputError, exit_code_for, one_line)
+from ..errors import (EXIT_CANCELLED, EXIT_CODES, EXIT_FAILED, EXIT_INTERNAL, EXIT_OK,
+                      CancelledBySignal, DependencyError, InputError, exit_code_for, one_line)
 from ..io import files as bwfiles
 from ..params import preset_name
 from . import run
@@ -27,6 +31,8 @@ LABEL_MAP_PREFIXES = ("seg.", "labels.", "mask.")
 SUMMARY_COLUMNS = ("case", "label", "status", "exit_code", "n_vertices", "n_faces", "checks_ok",
                    "distance_mean_mm", "distance_p95_mm", "seconds", "out", "message")
 STATUS = {**EXIT_CODES, EXIT_OK: "ok", EXIT_FAILED: "failed", EXIT_INTERNAL: "error"}
+# Seconds a cancelled worker process gets to remove its staged files before it is killed.
+WORKER_STOP_SECONDS = 30.0
 
 
 # ----------------------------------------------------------------------------------------
@@ -126,9 +132,11 @@ def run_task(task: dict, common: dict) -> dict:
     Runs in a worker process or on a Dask worker: everything it needs comes in ``task`` and
     ``common`` (plain, picklable values).
     """
+    global _task_running
     t0 = time.perf_counter()
     row = {c: "" for c in SUMMARY_COLUMNS}
     row.update(case=task["case"], label=task["label"], out=task.get("out", ""))
+    _task_running = True
     try:
         if task.get("error"):
             raise InputError(task["error"])
@@ -140,14 +148,12 @@ def run_task(task: dict, common: dict) -> dict:
         params = make_parameters(task.get("preset") or common.get("preset"),
                                  common.get("overrides", {}))
         intermediates = common.get("intermediates")
+        # The report is in the case's transaction: surface and report appear together.
         report = run.run_files(
             task["ct"], task["seg"], task["label"], task["out"], params, case=task["case"],
             coordinate_system=common.get("coordinate_system", "LPS"),
-            intermediates_dir=intermediates,
+            intermediates_dir=intermediates, report_path=common.get("report"),
             inputs={"preset": task.get("preset") or common.get("preset")})
-        if common.get("report"):
-            run.write_report(report, run.fill_template(common["report"], report.segment_name,
-                                                       task["case"]))
         dist = report.distance_to_constraints_mm
         row.update(status="ok", exit_code=EXIT_OK, out=report.output.path,
                    n_vertices=report.output.n_vertices, n_faces=report.output.n_faces,
@@ -156,8 +162,44 @@ def run_task(task: dict, common: dict) -> dict:
     except Exception as exc:
         code = exit_code_for(exc)
         row.update(status=STATUS.get(code, "error"), exit_code=code, message=one_line(exc))
+    finally:
+        _task_running = False
     row["seconds"] = f"{time.perf_counter() - t0:.1f}"
     return row
+
+
+# True while a worker process runs a task: a signal then cancels the task (its staged files
+# are removed); an idle worker just exits.
+_task_running = False
+
+
+def _worker_signal(signum, frame):
+    if bwfiles.defer_signal(signum):
+        return
+    if _task_running:
+        raise CancelledBySignal(signum)
+    os._exit(EXIT_CANCELLED)
+
+
+def _init_worker() -> None:
+    """Worker processes: SIGINT, SIGTERM and SIGHUP cancel the task under way."""
+    for signum in run.CANCEL_SIGNALS:
+        signal.signal(signum, _worker_signal)
+
+
+def _stop_workers(processes) -> None:
+    """SIGTERM each worker (it removes its staged files and exits), then wait; kill the ones
+    still running after WORKER_STOP_SECONDS (their temporary files are removed by a later run,
+    see :func:`BoneWatertightLib.io.files.remove_stale`)."""
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    deadline = time.monotonic() + WORKER_STOP_SECONDS
+    for process in processes:
+        process.join(max(0.0, deadline - time.monotonic()))
+        if process.is_alive():
+            process.kill()
+            process.join()
 
 
 def _fmt(value) -> str:
@@ -200,7 +242,9 @@ def run_tasks(tasks: list, common: dict, workers: int = 1, dask_address: Optiona
         return rows
     # spawn: fresh interpreters, so vtk/open3d/ITK thread pools are never forked mid-use.
     context = multiprocessing.get_context("spawn")
-    executor = ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    before = set(multiprocessing.active_children())
+    executor = ProcessPoolExecutor(max_workers=workers, mp_context=context,
+                                   initializer=_init_worker)
     try:
         futures = {executor.submit(run_task, task, common): i for i, task in enumerate(tasks)}
         for future in as_completed(futures):
@@ -210,8 +254,9 @@ def run_tasks(tasks: list, common: dict, workers: int = 1, dask_address: Optiona
             except Exception as exc:  # e.g. a worker killed by the OS for memory
                 row = _crashed_row(tasks[index], exc)
             finished(index, row)
-    except KeyboardInterrupt:
+    except BaseException:  # cancelled (a signal) or the loop failed: stop every worker
         executor.shutdown(wait=False, cancel_futures=True)
+        _stop_workers(set(multiprocessing.active_children()) - before)
         raise
     executor.shutdown(wait=True)
     return rows
@@ -335,13 +380,24 @@ def run_from_args(args, parser) -> int:
               "intermediates": intermediates,
               "threads": max(1, cpus // max(1, args.workers)) if args.workers > 1 else None}
 
+    finished_ok = []
+
     def on_row(row, done, total):
+        if row["status"] == "ok":
+            finished_ok.append(row)
         if not args.quiet:
             extra = row["message"] if row["status"] != "ok" else row["out"]
             print(f"[{done}/{total}] {row['case']} {row['label']}: {row['status']} "
                   f"({row['seconds']} s) {extra}", flush=True)
 
-    rows = run_tasks(tasks, common, workers=args.workers, dask_address=args.dask, on_row=on_row)
+    try:
+        rows = run_tasks(tasks, common, workers=args.workers, dask_address=args.dask,
+                         on_row=on_row)
+    except KeyboardInterrupt as exc:
+        how = f" ({exc.name})" if isinstance(exc, CancelledBySignal) else ""
+        sys.stderr.write(f"\nerror: cancelled{how}: {len(finished_ok)} of {len(tasks)} cases "
+                         "had finished and are written; the others wrote nothing.\n")
+        return EXIT_CANCELLED
     if args.summary:
         markdown = args.summary.lower().endswith(".md")
         bwfiles.write_text(summary_table(rows, markdown=markdown),

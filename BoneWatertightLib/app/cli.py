@@ -5,8 +5,9 @@ This module only parses the arguments and shows progress; the work is done by th
 (:mod:`.run`) and, for ``--cases``, the batch runner (:mod:`.batch`). Exit codes are those of
 :mod:`BoneWatertightLib.errors`: 0 success, 2 bad input or usage (the message says what to
 change), 3 reconstruction failed (batch: some case failed), 4 missing dependency, 5 an output
-could not be written (or another OS error), 130 cancelled, 1 internal error. Errors are one line
-``error: <message>`` on stderr. An output file is either complete or not written at all.
+could not be written (or another OS error), 130 cancelled (Ctrl-C, SIGTERM or SIGHUP), 1
+internal error. Errors are one line ``error: <message>`` on stderr. The files of a run (surfaces,
+report, picture, intermediates) appear together, complete, or not at all.
 """
 
 from __future__ import annotations
@@ -17,8 +18,9 @@ import sys
 import time
 from typing import Optional
 
-from ..errors import (EXIT_CANCELLED, EXIT_INPUT, EXIT_INTERNAL, EXIT_OK, CancelledError,
-                      InputError, exit_code_for, one_line)
+from ..errors import (EXIT_CANCELLED, EXIT_INPUT, EXIT_INTERNAL, EXIT_OK, CancelledBySignal,
+                      CancelledError, InputError, exit_code_for, one_line)
+from ..io import files as bwfiles
 from ..io import images, segmentations
 from ..report import case_summary_line
 from . import run
@@ -80,7 +82,15 @@ batch folder layout (--cases DIR):
 exit codes:
   0 success, 2 bad input, 3 reconstruction failed (batch: some case failed),
   4 missing dependency, 5 an output could not be written (or another OS error),
-  130 cancelled, 1 internal error.
+  130 cancelled (Ctrl-C, SIGTERM, SIGHUP), 1 internal error.
+
+outputs:
+  The files of one run (surfaces, report, picture, intermediates) are written as temporary
+  files beside their destinations and renamed together at the end: they appear complete and
+  together, or not at all (a failure or cancellation leaves earlier files as they were).
+  {label} and {case} become the segment's and case's names, one-to-one: characters other
+  than letters, digits, '-', '_' and '.' are written as %XX (e.g. "femur left" ->
+  femur%20left, "." -> %2E).
 
 example:
   bonewatertight --ct ct.nrrd --seg bones.seg.nrrd --label femur_left \\
@@ -139,6 +149,16 @@ class ProgressBar:
 # main
 
 def main(argv=None) -> int:
+    """Run the command line with ``argv`` (default ``sys.argv[1:]``); return the exit code.
+
+    SIGINT, SIGTERM and SIGHUP cancel the run (exit code 130) with every staged output
+    removed.
+    """
+    with run.cancel_on_signals():
+        return _main(argv)
+
+
+def _main(argv=None) -> int:
     parser = build_parser()
     args = None
     try:
@@ -152,8 +172,9 @@ def main(argv=None) -> int:
         return _run_single(args, parser)
     except SystemExit as exc:  # --help
         return exc.code if isinstance(exc.code, int) else EXIT_OK
-    except KeyboardInterrupt:
-        sys.stderr.write("\nerror: cancelled by the user; no output file was written.\n")
+    except KeyboardInterrupt as exc:
+        how = f" ({exc.name})" if isinstance(exc, CancelledBySignal) else " by the user"
+        sys.stderr.write(f"\nerror: cancelled{how}; no output file was written.\n")
         return EXIT_CANCELLED
     except Exception as exc:  # one line for the user; the traceback only on request
         code = exit_code_for(exc)
@@ -202,42 +223,73 @@ def _run_single(args, parser) -> int:
     t_read = time.perf_counter() - t0
 
     outputs = [run.fill_template(args.out, name) for _, name in segments]
-    if len(set(outputs)) != len(outputs):
-        raise InputError("Two labels give the same output file name; use distinct labels.")
+    for i, out in enumerate(outputs):
+        j = outputs.index(out)
+        if j != i:
+            same = segments[i][1] == segments[j][1]
+            raise InputError(
+                f"--label {args.label[j]} and --label {args.label[i]} "
+                + (f"are the same segment '{segments[i][1]}'; give each bone once."
+                   if same else f"give the same output file {out}; use distinct labels."))
 
+    # One transaction for the whole run: the surfaces, pictures and the report appear together
+    # when it commits; a label that fails only discards its own files.
     reports, codes = [], []
-    for (mask, name), label, out in zip(segments, args.label, outputs):
-        bar = ProgressBar(enabled=None if not args.quiet else False,
-                          prefix=f"{name}: " if len(segments) > 1 else "",
-                          verbose=args.verbose)
-        inputs = {"ct": os.path.abspath(args.ct), "seg": os.path.abspath(args.seg),
-                  "label": label, "ct_size": list(ct.GetSize()),
-                  "ct_spacing": list(ct.GetSpacing()), "preset": args.preset}
-        picture = run.fill_template(args.picture, name) if args.picture else None
-        if picture and len(segments) > 1 and "{label}" not in args.picture:
-            picture = os.path.splitext(picture)[0] + f"_{run.safe_name(name)}.png"
-        try:
-            report = run.run_case(
-                ct, mask, name, out, params, coordinate_system=system,
-                intermediates_dir=args.save_intermediates, picture=picture, progress=bar,
-                inputs=inputs, read_seconds=t_read / len(segments), reconstruct=reconstruct)
-        except (CancelledError, KeyboardInterrupt):
-            bar.close()
-            raise KeyboardInterrupt from None
-        except Exception as exc:
-            bar.close()
-            code = exit_code_for(exc)
-            if code == EXIT_INTERNAL:
-                raise
-            sys.stderr.write(f"error: {name}: {one_line(exc)}\n")
-            codes.append(code)
-            continue
-        bar.close()
-        reports.append(report)
-        codes.append(EXIT_OK)
-        if not args.quiet:
+    tx = bwfiles.OutputTransaction()
+    try:
+        _run_labels(args, tx, ct, segments, outputs, params, system, t_read, reconstruct,
+                    reports, codes)
+    except KeyboardInterrupt as exc:
+        if tx.state != "committed":
+            raise
+        # A signal that arrived while the files were being renamed is acted on right after.
+        how = f" ({exc.name})" if isinstance(exc, CancelledBySignal) else ""
+        sys.stderr.write(f"\nerror: cancelled{how} just after the outputs were written; they "
+                         "are complete.\n")
+        return EXIT_CANCELLED
+    if not args.quiet:
+        for report in reports:
             print(case_summary_line(report), flush=True)
-
-    if args.report and reports:
-        run.write_reports(args.report, reports)
     return max(codes, key=lambda c: (c != 0, c == EXIT_INPUT, c)) if codes else EXIT_OK
+
+
+def _run_labels(args, tx, ct, segments, outputs, params, system, t_read, reconstruct,
+                reports, codes) -> None:
+    """Reconstruct each label into ``tx`` (appending to ``reports`` and ``codes``) and commit."""
+    with tx:
+        for (mask, name), label, out in zip(segments, args.label, outputs):
+            bar = ProgressBar(enabled=None if not args.quiet else False,
+                              prefix=f"{name}: " if len(segments) > 1 else "",
+                              verbose=args.verbose)
+            inputs = {"ct": os.path.abspath(args.ct), "seg": os.path.abspath(args.seg),
+                      "label": label, "ct_size": list(ct.GetSize()),
+                      "ct_spacing": list(ct.GetSpacing()), "preset": args.preset}
+            picture = run.fill_template(args.picture, name) if args.picture else None
+            if picture and len(segments) > 1 and "{label}" not in args.picture:
+                picture = os.path.splitext(picture)[0] + f"_{run.safe_name(name)}.png"
+            try:
+                report = run.run_case(
+                    ct, mask, name, out, params, coordinate_system=system,
+                    intermediates_dir=args.save_intermediates, picture=picture, progress=bar,
+                    inputs=inputs, read_seconds=t_read / len(segments),
+                    reconstruct=reconstruct, transaction=tx)
+            except CancelledError:
+                bar.close()
+                raise KeyboardInterrupt from None
+            except KeyboardInterrupt:
+                bar.close()
+                raise
+            except Exception as exc:
+                bar.close()
+                code = exit_code_for(exc)
+                if code == EXIT_INTERNAL:
+                    raise
+                which = f"{name}: " if len(segments) > 1 else ""
+                sys.stderr.write(f"error: {which}{one_line(exc)}\n")
+                codes.append(code)
+                continue
+            bar.close()
+            reports.append(report)
+            codes.append(EXIT_OK)
+        if args.report and reports:
+            run.write_reports(args.report, reports, tx)

@@ -2,24 +2,35 @@
 
 Every front end goes through here and never through another: the command line
 (:mod:`.cli`), the batch runner (:mod:`.batch`), ``Resources/Scripts/demo.py`` and the Slicer
-batch script. Outputs are written only after the reconstruction succeeded, each one atomically
-(:func:`BoneWatertightLib.io.files.atomic_path`); a failed case leaves no file behind.
+batch script. Outputs are written only after the reconstruction succeeded, as one output
+transaction (:class:`BoneWatertightLib.io.files.OutputTransaction`): :func:`stage_outputs` is
+the one place that stages the files of a case (surface, extra surfaces, intermediates,
+picture, report) and :func:`case_transaction` the one that commits them, so they appear
+together or not at all. A failure, Ctrl-C, SIGTERM or SIGHUP (see :func:`cancel_on_signals`)
+removes every staged file and leaves earlier outputs as they were.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import time
+from dataclasses import dataclass, field
 from typing import Optional, Sequence
 
 import numpy as np
 
 from .. import __version__
-from ..errors import DependencyError, InputError, OutputError
+from ..errors import CancelledBySignal, DependencyError, InputError
 from ..io import files as bwfiles
 from ..io import images, meshes, segmentations
 from ..params import Parameters
 from ..report import (CaseReport, CaseTimes, DistanceSummary, OutputInfo, to_json)
+
+# Signals that cancel a run like Ctrl-C does (SIGHUP: the terminal was closed).
+CANCEL_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP")
+                       if hasattr(signal, name))
 
 
 def load_reconstruct():
@@ -34,9 +45,13 @@ def load_reconstruct():
 
 
 def safe_name(text: str) -> str:
-    """``text`` reduced to characters that are safe in a file name."""
-    keep = "".join(c if (c.isalnum() or c in "-_.") else "_" for c in str(text))
-    return keep.strip("._") or "segment"
+    """``text`` as a part of a file name, one-to-one.
+
+    Distinct segment names always give distinct file names: ``.`` and ``..`` become ``%2E``
+    and ``%2E.``, ``femur left`` becomes ``femur%20left`` (see
+    :func:`BoneWatertightLib.io.files.name_part`).
+    """
+    return bwfiles.name_part(text)
 
 
 def fill_template(template: str, label: str, case: Optional[str] = None) -> str:
@@ -55,12 +70,115 @@ def check_surface_path(path: str, what: str = "--out") -> None:
                          f"not '{ext or path}'")
 
 
+# ----------------------------------------------------------------------------------------
+# signals
+
+def _cancel_handler(signum, frame):
+    """Cancel the run (raise CancelledBySignal), unless a commit is under way: then right
+    after it (the files of a case are never half renamed)."""
+    if bwfiles.defer_signal(signum):
+        return
+    raise CancelledBySignal(signum)
+
+
+@contextlib.contextmanager
+def cancel_on_signals(signals: Sequence[int] = CANCEL_SIGNALS):
+    """Within the block, SIGINT, SIGTERM and SIGHUP raise :class:`CancelledBySignal`.
+
+    That is a KeyboardInterrupt, so every output transaction under way is aborted (its staged
+    files removed) and the front end exits with code 130. The previous handlers come back at
+    the end. Outside the main thread (where Python cannot set handlers) it does nothing.
+    """
+    previous = {}
+    try:
+        for signum in signals:
+            try:
+                previous[signum] = signal.signal(signum, _cancel_handler)
+            except (ValueError, OSError):  # not the main thread, or not settable
+                pass
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+# ----------------------------------------------------------------------------------------
+# one case
+
+@contextlib.contextmanager
+def case_transaction(transaction: Optional[bwfiles.OutputTransaction] = None):
+    """The transaction the files of one case are staged into; commits them at the end.
+
+    Without ``transaction`` a new one is committed when the block ends (every file appears
+    at once) and aborted when it raises. With one (several cases committed together, e.g.
+    the command line's repeated ``--label``), a failure discards only this case's files and
+    the caller commits.
+    """
+    if transaction is None:
+        with bwfiles.OutputTransaction() as tx:
+            yield tx
+        return
+    mark = transaction.mark()
+    try:
+        yield transaction
+    except BaseException:
+        transaction.discard(mark)
+        raise
+
+
+@dataclass
+class StagedOutputs:
+    """What :func:`stage_outputs` staged (final paths) and how long it took."""
+
+    picture: Optional[str] = None
+    picture_error: Optional[str] = None
+    intermediates: list = field(default_factory=list)
+    render_seconds: float = 0.0
+    write_seconds: float = 0.0
+
+
+def stage_outputs(tx: bwfiles.OutputTransaction, result, ct, segment_name: str, out: str, *,
+                  coordinate_system: str = "LPS", picture: Optional[str] = None,
+                  intermediates_dir: Optional[str] = None,
+                  also: Sequence[str] = ()) -> StagedOutputs:
+    """Stage every file of one case into ``tx`` (nothing appears before ``tx`` commits).
+
+    The surface (``out`` and ``also``), the intermediate results (into ``intermediates_dir``,
+    when the result has them) and the picture. A picture that cannot be rendered offscreen
+    is left out (``picture_error`` says why); every other failure raises (OutputError for an
+    operating-system error, naming the file).
+    """
+    staged = StagedOutputs()
+    t0 = time.perf_counter()
+    for path in (out, *also):
+        meshes.write_surface(result.surface, path, coordinate_system, transaction=tx)
+    if intermediates_dir and result.intermediates:
+        staged.intermediates = write_intermediates(result.intermediates, intermediates_dir,
+                                                   segment_name, coordinate_system,
+                                                   transaction=tx)
+    staged.write_seconds = time.perf_counter() - t0
+    if picture:
+        from . import render
+
+        t1 = time.perf_counter()
+        mark = tx.mark()
+        try:
+            staged.picture = tx.write(picture, lambda tmp: render.render_surface(
+                result.surface, tmp, ct=ct, title=segment_name))
+        except render.RenderUnavailable as exc:
+            tx.discard(mark)
+            staged.picture_error = str(exc)
+        staged.render_seconds = time.perf_counter() - t1
+    return staged
+
+
 def run_case(ct, mask, segment_name: str, out: str, params: Parameters, *,
              coordinate_system: str = "LPS", picture: Optional[str] = None,
              intermediates_dir: Optional[str] = None, also: Sequence[str] = (),
              progress=None, inputs: Optional[dict] = None, read_seconds: float = 0.0,
-             reconstruct=None) -> CaseReport:
-    """Reconstruct one segment and write its outputs.
+             reconstruct=None, report_path: Optional[str] = None,
+             transaction: Optional[bwfiles.OutputTransaction] = None) -> CaseReport:
+    """Reconstruct one segment and write its outputs, all together or none.
 
     Parameters
     ----------
@@ -89,10 +207,22 @@ def run_case(ct, mask, segment_name: str, out: str, params: Parameters, *,
         Time the caller spent reading the inputs (reported).
     reconstruct : callable, optional
         The pipeline entry (default :func:`BoneWatertightLib.pipeline.reconstruct`).
+    report_path : str, optional
+        The JSON report, written in the same transaction as the surface.
+    transaction : OutputTransaction, optional
+        Stage the files into this transaction instead of committing them here (the caller
+        commits; on failure this case's files are discarded from it).
 
     Returns
     -------
     CaseReport
+
+    Raises
+    ------
+    InputError, ReconstructionError, DependencyError, CancelledError
+        From the pipeline (nothing is written).
+    OutputError
+        A file could not be written (nothing is written; earlier files are kept).
     """
     t_start = time.perf_counter()
     check_surface_path(out)
@@ -104,53 +234,32 @@ def run_case(ct, mask, segment_name: str, out: str, params: Parameters, *,
     t_reconstruct = time.perf_counter() - t0
     surface = result.surface
 
-    picture_path, picture_error, t_render = None, None, 0.0
-    try:
-        for path in (out, picture, *also):
-            if path:
-                bwfiles.ensure_folder(path)
-        if picture:
-            from . import render
-
-            t1 = time.perf_counter()
-            try:
-                with bwfiles.atomic_path(picture) as tmp:
-                    render.render_surface(surface, tmp, ct=ct, title=segment_name)
-                picture_path = os.path.abspath(picture)
-            except render.RenderUnavailable as exc:
-                picture_error = str(exc)
-            t_render = time.perf_counter() - t1
-        t1 = time.perf_counter()
-        written_intermediates = []
-        if intermediates_dir and result.intermediates:
-            written_intermediates = write_intermediates(result.intermediates, intermediates_dir,
-                                                        segment_name, coordinate_system)
-        meshes.write_surface(surface, out, coordinate_system)
-        for path in also:
-            meshes.write_surface(surface, path, coordinate_system)
-        t_write = time.perf_counter() - t1
-    except OSError as exc:
-        if isinstance(exc, InputError):
-            raise
-        raise OutputError(f"Could not write the outputs: {exc}") from exc
-
-    report = CaseReport(
-        version=__version__,
-        inputs=dict(inputs or {}, segment_name=segment_name),
-        output=OutputInfo(
-            path=os.path.abspath(out), format=bwfiles.extension(out),
-            coordinate_system=coordinate_system, n_vertices=int(surface.n_vertices),
-            n_faces=int(surface.n_faces), picture=picture_path, picture_error=picture_error,
-            intermediates=written_intermediates, also=[os.path.abspath(p) for p in also]),
-        coordinate_system=coordinate_system,
-        checks=result.report.checks,
-        distance_to_constraints_mm=DistanceSummary.of(result.distance_to_constraints),
-        parameters=params.to_dict(),
-        timings_s=CaseTimes(read=read_seconds, reconstruct=t_reconstruct, render=t_render,
-                            write=t_write, stages=result.report.timings),
-        pipeline=result.report,
-    )
-    report.timings_s.total = read_seconds + time.perf_counter() - t_start
+    with case_transaction(transaction) as tx:
+        staged = stage_outputs(tx, result, ct, segment_name, out,
+                               coordinate_system=coordinate_system, picture=picture,
+                               intermediates_dir=intermediates_dir, also=also)
+        report = CaseReport(
+            version=__version__,
+            inputs=dict(inputs or {}, segment_name=segment_name),
+            output=OutputInfo(
+                path=os.path.abspath(out), format=bwfiles.extension(out),
+                coordinate_system=coordinate_system, n_vertices=int(surface.n_vertices),
+                n_faces=int(surface.n_faces), picture=staged.picture,
+                picture_error=staged.picture_error, intermediates=staged.intermediates,
+                also=[os.path.abspath(p) for p in also],
+                report=os.path.abspath(report_path) if report_path else None),
+            coordinate_system=coordinate_system,
+            checks=result.report.checks,
+            distance_to_constraints_mm=DistanceSummary.of(result.distance_to_constraints),
+            parameters=params.to_dict(),
+            timings_s=CaseTimes(read=read_seconds, reconstruct=t_reconstruct,
+                                render=staged.render_seconds, write=staged.write_seconds,
+                                stages=result.report.timings),
+            pipeline=result.report,
+        )
+        report.timings_s.total = read_seconds + time.perf_counter() - t_start
+        if report_path:
+            write_report(report, report_path, transaction=tx)
     return report
 
 
@@ -159,15 +268,15 @@ def run_files(ct_path: str, seg_path: str, label, out: str, params: Parameters, 
               **kwargs) -> CaseReport:
     """Read the CT and one segment from files, then :func:`run_case`.
 
-    ``out`` (and ``picture``, ``intermediates_dir`` in ``kwargs``) may hold ``{label}`` and
-    ``{case}``; they are filled with the segment's name and ``case``.
+    ``out`` (and ``picture``, ``intermediates_dir``, ``report_path`` in ``kwargs``) may hold
+    ``{label}`` and ``{case}``; they are filled with the segment's name and ``case``.
     """
     t0 = time.perf_counter()
     ct = images.read_ct(ct_path, ct_series)
     mask, name = segmentations.read_segment(seg_path, label)
     read_seconds = time.perf_counter() - t0
     out = fill_template(out, name, case)
-    for key in ("picture", "intermediates_dir"):
+    for key in ("picture", "intermediates_dir", "report_path"):
         if kwargs.get(key):
             kwargs[key] = fill_template(kwargs[key], name, case)
     inputs = {"ct": os.path.abspath(ct_path), "seg": os.path.abspath(seg_path),
@@ -181,52 +290,75 @@ def run_files(ct_path: str, seg_path: str, label, out: str, params: Parameters, 
 
 
 def write_intermediates(intermediates: dict, folder: str, segment_name: str,
-                        coordinate_system: str) -> list:
-    """Points as .ply, surfaces as .vtp, images as .nrrd; returns the files written."""
+                        coordinate_system: str,
+                        transaction: Optional[bwfiles.OutputTransaction] = None) -> list:
+    """Points as .ply, surfaces as .vtp, images as .nrrd; returns the files (final paths).
+
+    Staged into ``transaction`` when given, else written together in one transaction of
+    their own.
+    """
+    if transaction is None:
+        with bwfiles.OutputTransaction() as tx:
+            return write_intermediates(intermediates, folder, segment_name, coordinate_system,
+                                       transaction=tx)
     import SimpleITK as sitk
 
     from ..mesh.surface import Surface
 
-    os.makedirs(folder, exist_ok=True)
     written = []
     prefix = safe_name(segment_name)
     for name, value in intermediates.items():
         base = os.path.join(folder, f"{prefix}_{safe_name(name)}")
         if isinstance(value, Surface):
-            path = base + ".vtp"
-            meshes.write_surface(value, path, coordinate_system)
+            path = meshes.write_surface(value, base + ".vtp", coordinate_system,
+                                        transaction=transaction)
         elif isinstance(value, np.ndarray) and value.ndim == 2 and value.shape[1] == 3:
-            path = base + ".ply"
-            meshes.write_points(value, path, coordinate_system)
+            path = meshes.write_points(value, base + ".ply", coordinate_system,
+                                       transaction=transaction)
         elif isinstance(value, sitk.Image):
-            path = base + ".nrrd"
-            with bwfiles.atomic_path(path) as tmp:
-                sitk.WriteImage(value, tmp, True)
+            path = transaction.write(base + ".nrrd", lambda tmp, image=value: _write_image(
+                image, tmp))
         else:
             continue
         written.append(os.path.abspath(path))
     return written
 
 
-def write_report(report, path: str) -> str:
-    """Write a report (or a list of them) as NaN-safe JSON, atomically; returns ``path``."""
+def _write_image(image, path: str) -> None:
+    """sitk.WriteImage (compressed), its RuntimeError as the OSError it is."""
+    import SimpleITK as sitk
+
     try:
-        bwfiles.write_text(to_json(report), bwfiles.ensure_folder(path))
-    except OSError as exc:
-        if isinstance(exc, InputError):
-            raise
-        raise OutputError(f"Could not write the report {path}: {exc}") from exc
+        sitk.WriteImage(image, path, True)
+    except RuntimeError as exc:
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        raise OSError(lines[-1] if lines else "SimpleITK could not write the image") from None
+
+
+def write_report(report, path: str,
+                 transaction: Optional[bwfiles.OutputTransaction] = None) -> str:
+    """Write a report (or a list of them) as NaN-safe JSON, atomically; returns ``path``.
+
+    Staged into ``transaction`` when given. OutputError (exit code 5) when it cannot be
+    written.
+    """
+    bwfiles.write_text(to_json(report), path, transaction=transaction)
     return path
 
 
-def write_reports(template: str, reports: list) -> None:
+def write_reports(template: str, reports: list,
+                  transaction: Optional[bwfiles.OutputTransaction] = None) -> None:
     """One JSON per report when ``template`` has ``{label}``, else one file (a list of
-    surfaces when there are several)."""
+    surfaces when there are several). All in one transaction (``transaction`` or their own)."""
+    if transaction is None:
+        with bwfiles.OutputTransaction() as tx:
+            write_reports(template, reports, tx)
+        return
     if "{label}" in template:
         for report in reports:
-            write_report(report, fill_template(template, report.segment_name))
+            write_report(report, fill_template(template, report.segment_name), transaction)
     elif len(reports) == 1:
-        write_report(reports[0], template)
+        write_report(reports[0], template, transaction)
     elif reports:
         write_report({"tool": "BoneWatertight", "version": __version__, "surfaces": reports},
-                     template)
+                     template, transaction)

@@ -13,7 +13,6 @@ positions) and a CT to have only finite voxels (:func:`check_finite`).
 from __future__ import annotations
 
 import os
-import re
 import zlib
 from typing import Optional
 

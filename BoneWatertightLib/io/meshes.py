@@ -198,23 +198,58 @@ def _write_obj(poly, path, system):
 
 
 def _run_writer(writer, path):
-    ok = writer.Write()
+    import vtk
+
+    # VTK would print its own error (naming the temporary file) on stderr; the OSError below
+    # says what happened instead.
+    shown = vtk.vtkObject.GetGlobalWarningDisplay()
+    vtk.vtkObject.GlobalWarningDisplayOff()
+    try:
+        ok = writer.Write()
+    finally:
+        vtk.vtkObject.SetGlobalWarningDisplay(shown)
     code = writer.GetErrorCode()
     if ok and not code:
         return
     raise vtk_write_error(code, path)
 
 
+# Free space (bytes) below which a failed write is put down to a full disk.
+DISK_FULL_BYTES = 1 << 20
+
+
 def vtk_write_error(code: int, path) -> OSError:
-    """OSError for a VTK writer's error code (below 20000 VTK stores the C errno)."""
+    """OSError for a VTK writer's error code (below 20000 VTK stores the C errno).
+
+    VTK reports every failed write as "out of disk space"; the file system's free space and
+    the process's file-size limit tell a full disk (ENOSPC) from a size limit (EFBIG).
+    """
     import vtk
 
+    path = os.fspath(path)
     if 0 < code < 20000:
-        return OSError(code, os.strerror(code), os.fspath(path))
+        return OSError(code, os.strerror(code), path)
     if code == vtk.vtkErrorCode.OutOfDiskSpaceError:
-        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), os.fspath(path))
+        number = errno.ENOSPC
+        try:
+            stats = os.statvfs(os.path.dirname(os.path.abspath(path)))
+            full = stats.f_bavail * stats.f_frsize < DISK_FULL_BYTES
+        except (OSError, AttributeError):
+            full = True
+        if not full and _file_size_limited():
+            number = errno.EFBIG
+        return OSError(number, os.strerror(number), path)
     text = vtk.vtkErrorCode.GetStringFromErrorCode(code) if code else "unknown error"
     return OSError(f"VTK could not write {path} ({text}, error code {code})")
+
+
+def _file_size_limited() -> bool:
+    try:
+        import resource
+    except ImportError:  # not POSIX
+        return False
+    soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+    return soft != resource.RLIM_INFINITY
 
 
 _WRITERS = {".stl": _write_stl, ".ply": _write_ply, ".vtp": _write_vtp,
