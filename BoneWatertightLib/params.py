@@ -330,6 +330,13 @@ class Parameters:
             raise InputError(
                 f"Thresholds out of order: need HT < H0 < theta_max, got HT={self.ht:g}, "
                 f"H0={self.h0:g}, theta_max={self.theta_max:g}. Lower HT or raise theta_max.")
+        if self.iterations > 0 and self.alpha == 0 and self.beta == 0:
+            # Eq. (15) then has no term for the vertices without a match: it has no solution.
+            raise InputError(
+                "alpha and beta cannot both be 0: with neither the smoothness nor the "
+                "sharpness term the deformation has no solution for unmatched vertices. "
+                "Give alpha or beta a value above 0 (default 1), or iterations 0 to skip the "
+                "deformation.")
         return self
 
     def replace(self, **changes) -> "Parameters":
