@@ -11,10 +11,20 @@ are converted into the SimpleITK origin/spacing/direction; surfaces come back as
 Nothing here modifies an input node: voxels are copied, the segment is exported through
 vtkOrientedImageData objects that never enter the scene, and the output model node is only
 created or touched after the pipeline succeeded.
+
+Besides the conversions: a run that reports progress from its first moment and is cancelled
+when its scene closes (:func:`run_on_nodes`, :class:`RunGuard`, :class:`RunProgress`,
+:func:`load_pipeline`), and the panel's live threshold preview on a cached crop
+(:class:`ThresholdPreview`). The only thread used imports modules (open3d); MRML is touched
+on the caller's thread alone.
 """
 
 from __future__ import annotations
 
+import math
+import sys
+import threading
+import time
 from typing import Optional
 
 import numpy as np
@@ -25,6 +35,7 @@ from vtk.util import numpy_support as ns
 import slicer
 
 from .errors import (
+    CancelledError,
     EmptySegmentError,
     InputError,
     NoOverlapError,
@@ -78,11 +89,18 @@ def _ijk_to_world(volumeNode) -> Optional[np.ndarray]:
 
 
 def _hardened_oriented_image(volumeNode):
-    """Voxel copy of the volume resampled into world space (used for non-linear transforms)."""
+    """Voxel copy of the volume resampled into world space (used for non-linear transforms).
+
+    CreateOrientedImageDataFromVolumeNode hands its caller the reference that New() made
+    (the C++ caller must Take() it) and its declaration does not say so to VTK's Python
+    wrapping, which adds a reference of its own: without the UnRegister below every call
+    leaked a full copy of the volume. Afterwards the Python object holds the only reference.
+    """
     image = slicer.vtkSlicerSegmentationsModuleLogic.CreateOrientedImageDataFromVolumeNode(volumeNode, None)
     if image is None:
         raise InputError(f"Could not apply the transform of volume '{volumeNode.GetName()}'; "
                          "harden the transform (Data module) and try again.")
+    image.UnRegister(None)
     return image
 
 
@@ -92,12 +110,11 @@ def _oriented_image_matrix(image) -> np.ndarray:
     return _vtk_to_np_matrix(m)
 
 
-def _array_from_image_data(image) -> np.ndarray:
-    """(k, j, i) numpy *copy* of the scalars; never a view into the node's buffer."""
+def _array_view(image) -> np.ndarray:
+    """(k, j, i) numpy *view* of the scalars. Never written through for an input node's
+    image: what leaves this module is copied (sitk.GetImageFromArray copies)."""
     dims = image.GetDimensions()
-    scalars = image.GetPointData().GetScalars()
-    arr = ns.vtk_to_numpy(scalars)
-    return np.array(arr, copy=True).reshape(dims[2], dims[1], dims[0])
+    return ns.vtk_to_numpy(image.GetPointData().GetScalars()).reshape(dims[2], dims[1], dims[0])
 
 
 def _sitk_from_array(arr: np.ndarray, ijk_to_ras: np.ndarray, extent_start) -> sitk.Image:
@@ -171,7 +188,8 @@ def volume_to_sitk(volumeNode) -> sitk.Image:
         image = _hardened_oriented_image(volumeNode)
         ijk_to_world = _oriented_image_matrix(image)
     extent = image.GetExtent()
-    return _sitk_from_array(_array_from_image_data(image), ijk_to_world, extent[0::2])
+    # GetImageFromArray copies the buffer: one copy of the voxels, not two
+    return _sitk_from_array(_array_view(image), ijk_to_world, extent[0::2])
 
 
 def _reference_geometry(volumeNode):
@@ -251,23 +269,119 @@ def segment_to_sitk_mask(segmentationNode, segmentId: str, referenceVolumeNode) 
     segment = _check_segment(segmentationNode, segmentId)
     reference = _reference_geometry(referenceVolumeNode)
     labelmap, label = _segment_labelmap_world(segmentationNode, segmentId, reference)
-    scalars = labelmap.GetPointData().GetScalars()
-    if scalars is None or not np.any(ns.vtk_to_numpy(scalars) == label):
+    ijk_to_world = _oriented_image_matrix(reference)
+    ref_extent = reference.GetExtent()
+    box = _segment_box_on_grid(labelmap, label, ijk_to_world, ref_extent)
+    if box is None:
         raise EmptySegmentError(f"Segment '{segment.GetName()}' is empty. Paint at least a rough "
                                 "outline of the bone into it (Segment Editor), then apply again.")
+    no_overlap = NoOverlapError(f"Segment '{segment.GetName()}' does not overlap volume "
+                                f"'{referenceVolumeNode.GetName()}'. Select the CT the segment was drawn "
+                                "on (or check the transforms of both nodes).")
+    if box is False:
+        raise no_overlap
+    # Resample only onto the part of the CT grid that the segment can reach (a full-grid
+    # nearest-neighbour resample of a 512x512x500 CT took ~1.5 s); the rest stays 0.
+    crop = slicer.vtkOrientedImageData()
+    crop.SetExtent(box)
+    crop.SetImageToWorldMatrix(_np_to_vtk_matrix(ijk_to_world))
     resampled = slicer.vtkOrientedImageData()
     ok = slicer.vtkOrientedImageDataResample.ResampleOrientedImageToReferenceOrientedImage(
-        labelmap, reference, resampled, False, False, None, 0)
+        labelmap, crop, resampled, False, False, None, 0)
     if not ok or resampled.GetPointData().GetScalars() is None:
-        raise NoOverlapError(f"Segment '{segment.GetName()}' and volume '{referenceVolumeNode.GetName()}' "
-                             "do not overlap. Select the CT the segment was drawn on.")
-    mask = (_array_from_image_data(resampled) == label).astype(np.uint8)
+        raise no_overlap
+    dims = [ref_extent[2 * a + 1] - ref_extent[2 * a] + 1 for a in range(3)]
+    mask = np.zeros((dims[2], dims[1], dims[0]), dtype=np.uint8)
+    e = resampled.GetExtent()
+    mask[e[4] - ref_extent[4]:e[5] - ref_extent[4] + 1,
+         e[2] - ref_extent[2]:e[3] - ref_extent[2] + 1,
+         e[0] - ref_extent[0]:e[1] - ref_extent[0] + 1] = _array_view(resampled) == label
     if not mask.any():
-        raise NoOverlapError(f"Segment '{segment.GetName()}' does not overlap volume "
-                             f"'{referenceVolumeNode.GetName()}'. Select the CT the segment was drawn on "
-                             "(or check the transforms of both nodes).")
-    ijk_to_world = _oriented_image_matrix(reference)
-    return _sitk_from_array(mask, ijk_to_world, reference.GetExtent()[0::2])
+        raise no_overlap
+    return _sitk_from_array(mask, ijk_to_world, ref_extent[0::2])
+
+
+def _label_index_box(labelmap, label):
+    """(i0, i1, j0, j1, k0, k1) IJK index range of the voxels == label, or None if there are none."""
+    scalars = labelmap.GetPointData().GetScalars() if labelmap.GetPointData() is not None else None
+    if scalars is None:
+        return None
+    inside = _array_view(labelmap) == label
+    box = []
+    for axis in (2, 1, 0):  # i, j, k: the numpy axes are (k, j, i)
+        others = tuple(a for a in range(3) if a != axis)
+        hit = np.flatnonzero(inside.any(axis=others))
+        if hit.size == 0:
+            return None
+        box += [int(hit[0]), int(hit[-1])]
+    extent = labelmap.GetExtent()
+    return [box[n] + extent[2 * (n // 2)] for n in range(6)]
+
+
+def _segment_box_on_grid(labelmap, label, grid_to_world: np.ndarray, grid_extent, pad: int = 1,
+                         margin_voxels=(0, 0, 0)):
+    """Extent on a grid (IJK -> world matrix, extent) that holds every voxel of the segment.
+
+    The segment's voxel box is mapped through both matrices (any rotation or spacing), grown
+    by ``pad`` + ``margin_voxels`` (i, j, k) and clipped to ``grid_extent``. Returns None for
+    an empty segment and False when the box misses the grid.
+    """
+    box = _label_index_box(labelmap, label)
+    if box is None:
+        return None
+    corners = np.array([[i, j, k, 1.0] for i in (box[0] - 0.5, box[1] + 0.5)
+                        for j in (box[2] - 0.5, box[3] + 0.5) for k in (box[4] - 0.5, box[5] + 0.5)])
+    on_grid = (np.linalg.inv(grid_to_world) @ _oriented_image_matrix(labelmap) @ corners.T).T[:, :3]
+    lo = np.floor(on_grid.min(axis=0)).astype(int) - pad - np.asarray(margin_voxels, int)
+    hi = np.ceil(on_grid.max(axis=0)).astype(int) + pad + np.asarray(margin_voxels, int)
+    out = []
+    for a in range(3):
+        a0, a1 = max(lo[a], grid_extent[2 * a]), min(hi[a], grid_extent[2 * a + 1])
+        if a0 > a1:
+            return False
+        out += [int(a0), int(a1)]
+    return out
+
+
+def volume_node_from_sitk(scene, image: sitk.Image, name: str = "CT",
+                          className: str = "vtkMRMLScalarVolumeNode"):
+    """A new volume node (RAS) holding a copy of a SimpleITK image (LPS): the inverse of
+    :func:`volume_to_sitk` (phantoms, tests and scripts that start from files)."""
+    if image.GetDimension() != 3 or image.GetNumberOfComponentsPerPixel() != 1:
+        raise VolumeTypeError("Only single-component 3-D images can become volume nodes.")
+    lin = _FLIP_XY @ np.array(image.GetDirection(), float).reshape(3, 3) @ np.diag(image.GetSpacing())
+    ijk_to_ras = np.eye(4)
+    ijk_to_ras[:3, :3] = lin
+    ijk_to_ras[:3, 3] = _FLIP_XY @ np.array(image.GetOrigin(), float)
+    arr = sitk.GetArrayFromImage(image)
+    data = vtk.vtkImageData()
+    data.SetDimensions(arr.shape[2], arr.shape[1], arr.shape[0])
+    data.GetPointData().SetScalars(ns.numpy_to_vtk(np.ascontiguousarray(arr).ravel(), deep=True))
+    node = scene.AddNewNodeByClass(className, name)
+    node.SetAndObserveImageData(data)
+    node.SetIJKToRASMatrix(_np_to_vtk_matrix(ijk_to_ras))
+    return node
+
+
+def segmentation_node_from_mask(scene, mask: sitk.Image, name: str = "Segmentation",
+                                segmentName: str = "bone"):
+    """A new segmentation node with one segment (mask != 0) on the mask's own grid; returns
+    ``(segmentationNode, segmentId)``. The scene's segmentations logic must be set up first
+    (it registers the converter rules)."""
+    binary = sitk.Cast(sitk.NotEqual(mask, 0), sitk.sitkUInt8)
+    labelmap = volume_node_from_sitk(scene, binary, "BoneWatertight import", "vtkMRMLLabelMapVolumeNode")
+    segmentation = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
+    try:
+        if not slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(labelmap, segmentation):
+            raise InputError("The mask could not be imported into a segmentation.")
+    finally:
+        scene.RemoveNode(labelmap)
+    segmentId = segmentation.GetSegmentation().GetNthSegmentID(0)
+    if segmentId is None:
+        scene.RemoveNode(segmentation)
+        raise EmptySegmentError("The mask is empty: nothing to import.")
+    segmentation.GetSegmentation().GetSegment(segmentId).SetName(segmentName)
+    return segmentation, segmentId
 
 
 # ---------------------------------------------------------------------------------------
@@ -338,6 +452,19 @@ def add_surface_as_segment(segmentationNode, surface: Surface, name: str) -> str
     return segmentId
 
 
+def read_model_file(path: str, modelNode=None):
+    """Read a surface file the way 3D Slicer loads it (vtkMRMLModelStorageNode: the SPACE tag
+    of the file decides LPS or RAS; none means LPS). Returns the model node (RAS); a new node
+    outside any scene unless ``modelNode`` is given."""
+    storage = slicer.vtkMRMLModelStorageNode()
+    storage.SetFileName(str(path))
+    if modelNode is None:
+        modelNode = slicer.vtkMRMLModelNode()
+    if not storage.ReadData(modelNode) or modelNode.GetPolyData() is None:
+        raise InputError(f"3D Slicer's model reader could not read {path}.")
+    return modelNode
+
+
 def _points_to_polydata_ras(points_lps: np.ndarray):
     pts = np.ascontiguousarray(np.asarray(points_lps, dtype=np.float64).reshape(-1, 3) @ _FLIP_XY)
     vpts = vtk.vtkPoints()
@@ -374,6 +501,162 @@ def add_intermediate_nodes(scene, intermediates: dict, prefix: str = "BoneWatert
 
 
 # ---------------------------------------------------------------------------------------
+# a responsive run: progress from the first second, cancel, scene-close guard
+# ---------------------------------------------------------------------------------------
+
+# Overall progress fraction where each step of the adapter's own first phase starts; the
+# pipeline's [0, 1] is mapped onto [PIPELINE_START, 1].
+EXPORT_VOLUME_START = 0.0
+EXPORT_SEGMENT_START = 0.01
+IMPORT_START = 0.02
+PIPELINE_START = 0.04
+# While open3d (and the pipeline's modules) are imported in a helper thread, the progress
+# callback is called at least this often (s): the panel keeps painting, Cancel is honoured.
+IMPORT_TICK_S = 0.1
+# The import's progress approaches its end with this time constant (s) (its length is unknown).
+IMPORT_TIME_CONSTANT_S = 3.0
+
+
+class RunGuard:
+    """Cancels a run whose scene closes or whose nodes leave the scene (SPEC 5: never write
+    into a closed scene or a removed node).
+
+    Observes the scene's StartCloseEvent and NodeRemovedEvent while the run lasts; the run's
+    progress calls :meth:`check`, and the adapter checks once more before it touches the
+    scene. Use as a context manager (observers are removed on exit).
+    """
+
+    def __init__(self, scene, nodes=()):
+        self.scene = scene
+        self.nodes = [n for n in nodes if n is not None]
+        self.reason: Optional[str] = None
+        self._tags = []
+        if scene is not None:
+            self._tags = [scene.AddObserver(slicer.vtkMRMLScene.StartCloseEvent, self._onClose),
+                          scene.AddObserver(slicer.vtkMRMLScene.NodeRemovedEvent, self._onNodeRemoved)]
+
+    def _onClose(self, caller=None, event=None):
+        if self.reason is None:
+            self.reason = "The scene was closed during the run"
+
+    def _onNodeRemoved(self, caller=None, event=None):
+        if self.reason is not None:
+            return
+        for node in self.nodes:
+            if not self.scene.IsNodePresent(node):
+                self.reason = f"'{node.GetName()}' was removed from the scene during the run"
+                return
+
+    def check(self) -> None:
+        """CancelledError if the scene closed or a node of the run was removed."""
+        if self.reason is not None:
+            raise CancelledError(f"{self.reason}; nothing was written.")
+
+    def close(self) -> None:
+        for tag in self._tags:
+            self.scene.RemoveObserver(tag)
+        self._tags = []
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+
+class RunProgress:
+    """The progress callback of one MRML run: the adapter's first phase (export, imports),
+    then the pipeline's, on one [0, 1] scale; checks the :class:`RunGuard` at every call.
+
+    ``callback(fraction, message)`` returning False cancels (CancelledError), as in the library.
+    """
+
+    def __init__(self, callback=None, guard: Optional[RunGuard] = None,
+                 pipeline_start: float = PIPELINE_START):
+        self.callback = callback
+        self.guard = guard
+        self.pipeline_start = pipeline_start
+
+    def __call__(self, fraction: float, message: str = "") -> None:
+        if self.guard is not None:
+            self.guard.check()
+        if self.callback is not None and self.callback(fraction, message) is False:
+            raise CancelledError("Cancelled by the user; nothing was changed.")
+
+    def pipeline(self):
+        """The callback to hand to ``pipeline.reconstruct`` (its [0, 1] mapped onto ours)."""
+        start = self.pipeline_start
+
+        def report(fraction, message=""):
+            if self.guard is not None:
+                self.guard.check()
+            if self.callback is None:
+                return True
+            return self.callback(start + (1.0 - start) * fraction, message)
+        return report
+
+
+def load_pipeline(progress: Optional[RunProgress] = None, start: float = IMPORT_START,
+                  end: float = PIPELINE_START):
+    """Import the pipeline and open3d (seconds on first use) while reporting progress.
+
+    The import runs in a helper thread; this (the main) thread calls ``progress`` every
+    IMPORT_TICK_S, so the panel keeps painting and Cancel is honoured. Only imports happen in
+    the thread (no MRML, no Qt). Should the threaded import fail for another reason than a
+    missing package, it is retried here. Returns the pipeline module; DependencyError when
+    open3d is missing.
+    """
+    if progress is not None:
+        progress(start, "Loading open3d")
+    if "open3d" in sys.modules and f"{__package__}.pipeline" in sys.modules:
+        return sys.modules[f"{__package__}.pipeline"]
+    failure = []
+
+    def work():
+        try:
+            from . import pipeline
+            from .stages.poisson import import_open3d
+            import_open3d()
+            del pipeline
+        except BaseException as exc:  # handed to the main thread
+            failure.append(exc)
+
+    # not a daemon: after a Cancel the import finishes in the background, and an interpreter
+    # that exits meanwhile waits for it instead of tearing a half-loaded extension down
+    thread = threading.Thread(target=work, name="BoneWatertight import", daemon=False)
+    t0 = time.monotonic()
+    thread.start()
+    while thread.is_alive():
+        thread.join(IMPORT_TICK_S)
+        if thread.is_alive() and progress is not None:
+            elapsed = time.monotonic() - t0
+            progress(start + (end - start) * (1.0 - math.exp(-elapsed / IMPORT_TIME_CONSTANT_S)),
+                     "Loading open3d")
+    from .errors import DependencyError
+
+    if failure and not isinstance(failure[0], (ImportError, DependencyError)):
+        failure.clear()  # e.g. a library that insists on the main thread: import here instead
+    if failure:
+        raise failure[0]
+    from . import pipeline
+    from .stages.poisson import import_open3d
+    import_open3d()
+    return pipeline
+
+
+def export_inputs(volumeNode, segmentationNode, segmentId, progress: Optional[RunProgress] = None):
+    """(CT, mask) as SimpleITK images in LPS for one segment, reporting progress per step."""
+    if progress is not None:
+        progress(EXPORT_VOLUME_START, "Reading the CT volume")
+    ct = volume_to_sitk(volumeNode)
+    if progress is not None:
+        progress(EXPORT_SEGMENT_START, "Reading the segment")
+    mask = segment_to_sitk_mask(segmentationNode, segmentId, volumeNode)
+    return ct, mask
+
+
+# ---------------------------------------------------------------------------------------
 # the one call
 # ---------------------------------------------------------------------------------------
 
@@ -404,6 +687,10 @@ def run_on_nodes(volumeNode, segmentationNode, segmentId, outputModelNode=None, 
 
     Returns ``(modelNode, result)``. The scene is only modified after the pipeline succeeded;
     any error (bad input, reconstruction failure, cancel) propagates with the scene unchanged.
+    ``progress(fraction, message)`` is called from the first moment (CT and segment export,
+    the open3d import) and throughout the pipeline; returning False cancels. Closing the
+    scene, or removing an input or the output node, during the run cancels it
+    (CancelledError) and nothing is written (:class:`RunGuard`).
     """
     parameters = _as_parameters(params)
     if showIntermediates and not parameters.keep_intermediates:
@@ -417,13 +704,21 @@ def run_on_nodes(volumeNode, segmentationNode, segmentId, outputModelNode=None, 
     if outputModelNode is not None and not outputModelNode.IsA("vtkMRMLModelNode"):
         raise InputError("The output node must be a model node.")
 
-    ct = volume_to_sitk(volumeNode)
-    mask = segment_to_sitk_mask(segmentationNode, segmentId, volumeNode)
-    from . import pipeline  # late: input errors are reported even where the pipeline's deps are missing
+    with RunGuard(scene, (volumeNode, segmentationNode, outputModelNode)) as guard:
+        report = RunProgress(progress, guard)
+        ct, mask = export_inputs(volumeNode, segmentationNode, segmentId, report)
+        # late: input errors are reported even where the pipeline's deps are missing
+        pipeline = load_pipeline(report)
+        result = pipeline.reconstruct(ct, mask, parameters, report.pipeline())
+        guard.check()  # the scene may have closed after the last progress report
+        return _store_result(scene, result, segmentationNode, segmentId, outputModelNode,
+                             addAsSegment=addAsSegment, showIntermediates=showIntermediates,
+                             colorByDistance=colorByDistance, modelName=modelName)
 
-    result = pipeline.reconstruct(ct, mask, parameters, progress)
 
-    # --- success: only now touch the scene
+def _store_result(scene, result, segmentationNode, segmentId, outputModelNode, *,
+                  addAsSegment, showIntermediates, colorByDistance, modelName):
+    """Success: only now touch the scene (model, report attribute, segment, intermediates)."""
     if outputModelNode is None:
         segName = segmentationNode.GetSegmentation().GetSegment(segmentId).GetName()
         name = modelName or scene.GenerateUniqueName(f"{segName} watertight")
@@ -453,48 +748,191 @@ def propose_thresholds(volumeNode, segmentationNode, segmentId: str, theta_max: 
     return _propose(ct, mask, theta_max=theta_max)
 
 
-def threshold_preview_labelmap(volumeNode, segmentationNode, segmentId: str, h0: float, ht: float,
-                               theta_max: float, labelmapNode=None, margin_mm: float = 5.0):
-    """Fill a label map node (CT grid) with the two threshold windows for a live preview.
+# ---------------------------------------------------------------------------------------
+# live threshold preview
+# ---------------------------------------------------------------------------------------
 
-    Label 1 = [HT, H0) (reached only by the target threshold), 2 = [H0, theta_max]; restricted to
-    the segment's bounding box plus a margin so neighbouring bones far away stay unlabelled.
-    The label map node is created (hidden from editors) if not given; the caller removes it.
-    """
-    image = _check_volume_node(volumeNode)
-    scene = volumeNode.GetScene()
-    values = _array_from_image_data(image)
-    window = np.zeros(values.shape, dtype=np.uint8)
-    sel = values >= ht
-    window[sel & (values < h0)] = 1
-    window[(values >= h0) & (values <= theta_max)] = 2
+# Labels of the preview label map and their colours (the panel's tooltip names them).
+PREVIEW_TARGET_LABEL = 1   # [HT, H0): reached only by the target window
+PREVIEW_INITIAL_LABEL = 2  # [H0, theta_max]: the initial window
+PREVIEW_COLORS = {
+    PREVIEW_TARGET_LABEL: ("green", "[HT, H0)", (0.20, 0.80, 0.20)),
+    PREVIEW_INITIAL_LABEL: ("yellow", "[H0, theta max]", (1.00, 0.90, 0.10)),
+}
+PREVIEW_MARGIN_MM = 5.0
+
+
+def _transform_key(node):
+    """What the node's world frame depends on: its world matrix, or the MTimes of a
+    non-linear parent chain."""
+    world = _to_world_matrix(node)
+    if world is not None:
+        return tuple(np.round(world.ravel(), 9))
+    key, tn = [], node.GetParentTransformNode()
+    while tn is not None:
+        key += [tn.GetID(), tn.GetMTime(), tn.GetTransformToParent().GetMTime()]
+        tn = tn.GetParentTransformNode()
+    return tuple(key)
+
+
+def _preview_source_key(volumeNode, segmentationNode, segmentId):
+    """Changes whenever the voxels, the geometry or the segment that the preview's cached
+    crop was made from change (MTimes are cheap to read: microseconds)."""
+    image = volumeNode.GetImageData()
+    key = [volumeNode.GetID(), volumeNode.GetMTime(), image.GetMTime() if image is not None else None,
+           _transform_key(volumeNode)]
     if segmentationNode is not None and segmentId:
-        mask = sitk.GetArrayFromImage(segment_to_sitk_mask(segmentationNode, segmentId, volumeNode)) > 0
-        nz = np.nonzero(mask)
+        segmentation = segmentationNode.GetSegmentation()
+        segment = segmentation.GetSegment(segmentId)
+        source = (segment.GetRepresentation(segmentation.GetSourceRepresentationName())
+                  if segment is not None else None)
+        key += [segmentationNode.GetID(), segmentId, segmentationNode.GetMTime(),
+                segmentation.GetMTime(), segment.GetMTime() if segment is not None else None,
+                source.GetMTime() if source is not None else None, _transform_key(segmentationNode)]
+    return tuple(key)
+
+
+class ThresholdPreview:
+    """Live preview of the two threshold windows as a label map in the slice views.
+
+    The voxels of the CT around the segment (its box plus ``margin_mm``, on the CT's own grid)
+    are copied once into a cache; each :meth:`update` only thresholds that crop in place into
+    the label map's buffer (a few ms for a femur-sized box, see Testing/bench_slicer.py). The
+    cache is rebuilt when the volume, its geometry or the segment change. Label
+    PREVIEW_TARGET_LABEL = [HT, H0) is green, PREVIEW_INITIAL_LABEL = [H0, theta_max] yellow,
+    from a colour table of its own. The label map, its display node and the colour table are
+    hidden from editors and never saved with the scene; :meth:`remove` takes them out.
+    """
+
+    def __init__(self, scene, margin_mm: float = PREVIEW_MARGIN_MM, name: str = "BoneWatertight preview"):
+        self.scene = scene
+        self.margin_mm = float(margin_mm)
+        self.name = name
+        self.labelmapNode = None
+        self.colorNode = None
+        self.cacheBuilds = 0
+        self._key = None
+        self._values = None
+        self._labels = None
+        self._scratch = None
+
+    # -- cache
+
+    def invalidate(self) -> None:
+        self._key = None
+        self._values = self._labels = self._scratch = None
+
+    def _crop_box(self, volumeNode, segmentationNode, segmentId, image):
+        """IJK extent of the volume (its own grid) to preview: the segment's box + margin."""
+        extent = list(image.GetExtent())
+        if segmentationNode is None or not segmentId:
+            return extent
+        ijk_to_world = _ijk_to_world(volumeNode)
+        if ijk_to_world is None:  # non-linear transform: the volume's IJK has no world box
+            return extent
+        _check_segment(segmentationNode, segmentId)
+        reference = slicer.vtkOrientedImageData()
+        reference.SetExtent(extent)
+        reference.SetImageToWorldMatrix(_np_to_vtk_matrix(ijk_to_world))
+        labelmap, label = _segment_labelmap_world(segmentationNode, segmentId, reference)
+        spacing = np.linalg.norm(ijk_to_world[:3, :3], axis=0)
+        margin = np.ceil(self.margin_mm / spacing).astype(int)
+        box = _segment_box_on_grid(labelmap, label, ijk_to_world, extent, margin_voxels=margin)
+        if box is None:
+            raise EmptySegmentError("The segment is empty: nothing to preview.")
+        if box is False:
+            raise NoOverlapError("The segment does not overlap the volume: nothing to preview.")
+        return box
+
+    def _build(self, volumeNode, segmentationNode, segmentId, key) -> None:
+        image = _check_volume_node(volumeNode)
+        box = self._crop_box(volumeNode, segmentationNode, segmentId, image)
+        full = image.GetExtent()
+        view = _array_view(image)
+        values = np.ascontiguousarray(view[box[4] - full[4]:box[5] - full[4] + 1,
+                                           box[2] - full[2]:box[3] - full[2] + 1,
+                                           box[0] - full[0]:box[1] - full[0] + 1])
+        node = self._ensure_nodes()
+        # the crop's own image (extent from 0) with the volume's matrix shifted to its corner
         m = vtk.vtkMatrix4x4()
         volumeNode.GetIJKToRASMatrix(m)
-        spacing = np.linalg.norm(_vtk_to_np_matrix(m)[:3, :3], axis=0)[::-1]  # (k, j, i)
-        keep = np.zeros_like(window, dtype=bool)
-        sl = tuple(slice(max(0, int(a.min() - margin_mm / s)), int(a.max() + margin_mm / s) + 1)
-                   for a, s in zip(nz, spacing))
-        keep[sl] = True
-        window[~keep] = 0
-    if labelmapNode is None:
-        labelmapNode = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode",
-                                               scene.GenerateUniqueName("BoneWatertight preview"))
-        labelmapNode.SetHideFromEditors(True)
-        labelmapNode.SetSaveWithScene(False)
-        # slice views draw no volume that lacks a display node (AddNewNodeByClass creates none)
-        labelmapNode.CreateDefaultDisplayNodes()
-        if labelmapNode.GetDisplayNode() is not None:
-            labelmapNode.GetDisplayNode().SetSaveWithScene(False)
-    m = vtk.vtkMatrix4x4()
-    volumeNode.GetIJKToRASMatrix(m)
-    labelmapNode.SetIJKToRASMatrix(m)
-    labelmapNode.SetAndObserveTransformNodeID(volumeNode.GetTransformNodeID())
-    img = vtk.vtkImageData()
-    img.SetExtent(image.GetExtent())
-    vtk_arr = ns.numpy_to_vtk(window.ravel(), deep=True, array_type=vtk.VTK_UNSIGNED_CHAR)
-    img.GetPointData().SetScalars(vtk_arr)
-    labelmapNode.SetAndObserveImageData(img)
-    return labelmapNode
+        ijk_to_ras = _vtk_to_np_matrix(m)
+        ijk_to_ras[:3, 3] = (ijk_to_ras @ np.array([box[0], box[2], box[4], 1.0]))[:3]
+        node.SetIJKToRASMatrix(_np_to_vtk_matrix(ijk_to_ras))
+        node.SetAndObserveTransformNodeID(volumeNode.GetTransformNodeID())
+        labels = vtk.vtkImageData()
+        labels.SetDimensions(values.shape[2], values.shape[1], values.shape[0])
+        labels.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
+        node.SetAndObserveImageData(labels)
+        self._values = values
+        self._labels = _array_view(labels)  # writes go straight into the node's buffer
+        self._scratch = (np.empty(values.shape, bool), np.empty(values.shape, bool))
+        self._key = key
+        self.cacheBuilds += 1
+
+    def _ensure_nodes(self):
+        scene = self.scene
+        if self.colorNode is None or self.colorNode.GetScene() is not scene:
+            color = slicer.vtkMRMLColorTableNode()
+            color.SetName(scene.GenerateUniqueName(f"{self.name} colours"))
+            color.SetTypeToUser()
+            color.SetNumberOfColors(1 + max(PREVIEW_COLORS))
+            color.SetColor(0, "background", 0.0, 0.0, 0.0, 0.0)
+            for label, (_colour, window, rgb) in PREVIEW_COLORS.items():
+                color.SetColor(label, window, *rgb, 1.0)
+            color.SetHideFromEditors(True)
+            color.SetSaveWithScene(False)
+            scene.AddNode(color)
+            self.colorNode = color
+        if self.labelmapNode is None or self.labelmapNode.GetScene() is not scene:
+            node = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", scene.GenerateUniqueName(self.name))
+            node.SetHideFromEditors(True)
+            node.SetSaveWithScene(False)
+            self.labelmapNode = node
+        display = self.labelmapNode.GetDisplayNode()
+        if display is None:
+            # slice views draw no volume that lacks a display node (AddNewNodeByClass creates
+            # none); made here, not by CreateDefaultDisplayNodes, so it never refers to the
+            # default label colours (label 1 blue, 2 peach)
+            display = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeDisplayNode")
+            display.SetHideFromEditors(True)
+            display.SetSaveWithScene(False)
+            self.labelmapNode.SetAndObserveDisplayNodeID(display.GetID())
+        if display.GetColorNodeID() != self.colorNode.GetID():
+            display.SetAndObserveColorNodeID(self.colorNode.GetID())
+        return self.labelmapNode
+
+    # -- the per-drag-step work
+
+    def update(self, volumeNode, segmentationNode, segmentId: str, h0: float, ht: float,
+               theta_max: float):
+        """Show [HT, H0) and [H0, theta_max] around the segment; returns the label map node."""
+        key = _preview_source_key(volumeNode, segmentationNode, segmentId)
+        if key != self._key or self.labelmapNode is None or self.labelmapNode.GetScene() is not self.scene:
+            self._build(volumeNode, segmentationNode, segmentId, key)
+        v, labels = self._values, self._labels
+        below_top, initial = self._scratch
+        target = labels.view(bool)
+        np.less_equal(v, theta_max, out=below_top)
+        np.greater_equal(v, ht, out=target)
+        np.logical_and(target, below_top, out=target)        # [HT, theta_max] -> 1
+        np.greater_equal(v, h0, out=initial)
+        np.logical_and(initial, below_top, out=initial)      # [H0, theta_max]
+        np.add(labels, initial.view(np.uint8), out=labels)   # -> 2
+        image = self.labelmapNode.GetImageData()
+        image.GetPointData().GetScalars().Modified()
+        image.Modified()
+        return self.labelmapNode
+
+    def remove(self) -> None:
+        """Take the label map, its display node and the colour table out of the scene."""
+        for node in (self.labelmapNode, self.colorNode):
+            if node is None or node.GetScene() is None:
+                continue
+            display = node.GetDisplayNode() if node.IsA("vtkMRMLDisplayableNode") else None
+            node.GetScene().RemoveNode(node)
+            if display is not None and display.GetScene() is not None:
+                display.GetScene().RemoveNode(display)  # RemoveNode leaves it orphaned
+        self.labelmapNode = self.colorNode = None
+        self.invalidate()
+

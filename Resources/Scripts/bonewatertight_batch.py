@@ -6,11 +6,26 @@ Usage (the same flags, parameter options and exit codes as the ``bonewatertight`
       [--preset femur|hip|vertebra] [--h0 300 --spacing 0.5 ...] [--report report.json] [--ras]
   Slicer --no-main-window --python-script bonewatertight_batch.py -- --self-test
 
+The extension installs this script as <Slicer extension folder>/lib/Slicer-X.Y/qt-scripted-modules/
+Resources/Scripts/bonewatertight_batch.py (in a source checkout: Resources/Scripts/). It also
+runs in PythonSlicer or any Python with the slicer-core wheel (no Slicer application needed).
+
 Every run goes through the library's run service (BoneWatertightLib.app.run), with Slicer's own
-Python, VTK and SimpleITK. ``--self-test`` builds a sphere phantom as MRML nodes, converts it
-with the MRML adapter (BoneWatertightLib.mrml) and checks the radius. Exit status: the table of
-BoneWatertightLib.errors (0 success, 2 bad input, 3 failed, 4 missing dependency, 5 output/OS
-error, 130 cancelled, 1 internal error).
+Python, VTK and SimpleITK. Surfaces are written in LPS (default) or RAS (--ras) with the
+coordinate system in the file (SPACE=LPS / SPACE=RAS, as 3D Slicer writes and reads them).
+``--self-test`` builds a sphere phantom as MRML nodes, converts it with the MRML adapter
+(BoneWatertightLib.mrml), writes the surface and reads it back with 3D Slicer's model reader to
+check the radius in RAS; without open3d it installs it once with pip (BONEWATERTIGHT_TEST_INSTALL=0:
+never) or skips with exit code 4.
+
+Exit status (the table of BoneWatertightLib.errors):
+  0    success
+  1    internal error (a bug)
+  2    bad input or usage
+  3    reconstruction failed
+  4    missing dependency (--self-test: skipped, open3d unavailable)
+  5    an output could not be written, or another OS error
+  130  cancelled
 """
 
 import os
@@ -21,8 +36,10 @@ import slicer
 
 
 def _ensureLibrary():
-    """Make BoneWatertightLib importable: the module folder when Slicer loaded the extension,
-    else the checkout this script lives in."""
+    """Make BoneWatertightLib importable: already importable when Slicer loaded the extension;
+    else the folder two levels above this script's folder, which holds BoneWatertightLib both
+    in a checkout (<root>/Resources/Scripts/) and as installed by the extension
+    (<qt-scripted-modules>/Resources/Scripts/)."""
     try:
         import BoneWatertightLib  # noqa: F401
     except ImportError:
@@ -44,9 +61,37 @@ def build_parser():
     return parser
 
 
-def _phantom():
-    """A sphere of radius 10 mm (~1000 HU in 40 HU) on an oblique grid, and a rough segment,
-    as MRML nodes; returns (CT node, segmentation node, segment ID, centre RAS)."""
+def _scene():
+    """Slicer's scene; in PythonSlicer or with slicer-core, a new scene whose segmentations
+    logic is registered first (it brings the segmentation converter rules)."""
+    scene = getattr(slicer, "mrmlScene", None)
+    if scene is not None:
+        return scene
+    scene = slicer.vtkMRMLScene()
+    logic = slicer.vtkSlicerSegmentationsModuleLogic()
+    logic.SetMRMLScene(scene)
+    scene._boneWatertightSegmentationsLogic = logic  # kept alive with the scene
+    return scene
+
+
+def _volumeNode(scene, className, name, arrayKji, ijkToRas):
+    import numpy as np
+    import vtk
+    from vtk.util import numpy_support
+
+    node = scene.AddNewNodeByClass(className, name)
+    image = vtk.vtkImageData()
+    image.SetDimensions(arrayKji.shape[2], arrayKji.shape[1], arrayKji.shape[0])
+    image.GetPointData().SetScalars(numpy_support.numpy_to_vtk(np.ascontiguousarray(arrayKji).ravel(), deep=True))
+    node.SetAndObserveImageData(image)
+    node.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(ijkToRas))
+    return node
+
+
+def _phantom(scene):
+    """A sphere of radius 10 mm (~1000 HU in 40 HU, blurred edge, 8 HU noise: a CT, not a
+    label map) on an oblique grid, and a rough segment, as MRML nodes; returns (CT node,
+    segmentation node, segment ID, centre RAS)."""
     import numpy as np
 
     dims = 40
@@ -55,15 +100,41 @@ def _phantom():
     ras = np.stack([i, j, k, np.ones_like(i)], -1) @ ijkToRas.T
     centre = (ijkToRas @ np.array([19.5, 19.5, 19.5, 1.0]))[:3]
     r = np.linalg.norm(ras[..., :3] - centre, axis=-1)
-    ct = slicer.util.addVolumeFromArray(np.where(r <= 10.0, 1000, 40).astype(np.int16), name="phantom CT")
-    ct.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(ijkToRas))
-    lab = slicer.util.addVolumeFromArray((r <= 8.5).astype(np.uint8), name="rough",
-                                         nodeClassName="vtkMRMLLabelMapVolumeNode")
-    lab.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(ijkToRas))
-    seg = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLSegmentationNode", "Segmentation")
-    slicer.modules.segmentations.logic().ImportLabelmapToSegmentationNode(lab, seg)
-    slicer.mrmlScene.RemoveNode(lab)
+    edge = 0.5 * (1.0 - np.tanh((r - 10.0) / 0.5))  # half maximum at the 10 mm radius
+    noise = np.random.default_rng(3).normal(0.0, 8.0, r.shape)
+    ct = _volumeNode(scene, "vtkMRMLScalarVolumeNode", "phantom CT",
+                     np.round(40.0 + 960.0 * edge + noise).astype(np.int16), ijkToRas)
+    lab = _volumeNode(scene, "vtkMRMLLabelMapVolumeNode", "rough", (r <= 8.5).astype(np.uint8), ijkToRas)
+    seg = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "Segmentation")
+    slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(lab, seg)
+    scene.RemoveNode(lab)
     return ct, seg, seg.GetSegmentation().GetNthSegmentID(0), centre
+
+
+def _open3dForSelfTest(quiet):
+    """None when open3d imports (installed once with pip if allowed), else why not."""
+    from BoneWatertightLib.app.slicer_support import dependency_test_plan
+
+    def importable():
+        try:
+            import open3d  # noqa: F401
+        except (ImportError, OSError):
+            return False
+        return True
+
+    plan = dependency_test_plan(importable())
+    if plan == "run":
+        return None
+    if plan == "skip":
+        return "not installed; installing is switched off"
+    if not quiet:
+        print("SELFTEST installing open3d with pip", flush=True)
+    try:
+        slicer.util.pip_install(["open3d>=0.18", "--upgrade-strategy", "only-if-needed",
+                                 "--timeout", "60", "--retries", "1"])
+    except Exception as exc:  # offline machine, no wheel for this platform, no Slicer app, ...
+        return f"pip could not install it: {exc}"
+    return None if importable() else "installed but it does not import"
 
 
 def _selfTest(args, params, progress):
@@ -72,17 +143,18 @@ def _selfTest(args, params, progress):
     from BoneWatertightLib import mrml
     from BoneWatertightLib.app import run
 
-    ctNode, segNode, segmentId, centre = _phantom()
+    ctNode, segNode, segmentId, centre = _phantom(_scene())
     ct = mrml.volume_to_sitk(ctNode)
     mask = mrml.segment_to_sitk_mask(segNode, segmentId, ctNode)
     out = args.out or os.path.join(tempfile.mkdtemp(prefix="bonewatertight_selftest_"), "sphere.stl")
     report = run.run_case(ct, mask, "phantom", out, params, coordinate_system="RAS" if args.ras else "LPS",
                           progress=progress, inputs={"self_test": True})
-    from BoneWatertightLib.io import meshes
+    # read back as 3D Slicer loads the file: the SPACE tag must put it where the CT is
+    from vtk.util import numpy_support
 
-    points = meshes.read_surface(out, "RAS").vertices
+    points = numpy_support.vtk_to_numpy(mrml.read_model_file(out).GetPolyData().GetPoints().GetData())
     error = float(np.abs(np.linalg.norm(points - centre, axis=1) - 10.0).max())
-    print(f"SELFTEST max radial error {error:.3f} mm", flush=True)
+    print(f"SELFTEST max radial error {error:.3f} mm (read back with Slicer's model reader)", flush=True)
     return [report], error <= 1.0
 
 
@@ -108,6 +180,12 @@ def main(argv):
 
         ok = True
         if args.self_test:
+            missing = _open3dForSelfTest(args.quiet)
+            if missing:
+                from BoneWatertightLib.app.slicer_support import dependency_skip_message
+
+                print(dependency_skip_message(missing), flush=True)
+                return errors.EXIT_DEPENDENCY
             reports, ok = _selfTest(args, params, progress)
         else:
             missing = [f for f, v in (("--ct", args.ct), ("--seg", args.seg), ("--label", args.label),
@@ -141,5 +219,13 @@ def main(argv):
         return code
 
 
+def _exit(status):
+    """Leave Slicer with ``status`` (slicer.util.exit needs the application); elsewhere sys.exit."""
+    if getattr(slicer, "app", None) is not None:
+        slicer.util.exit(status)
+    else:
+        sys.exit(status)
+
+
 if __name__ == "__main__":
-    slicer.util.exit(main(sys.argv[1:]))
+    _exit(main(sys.argv[1:]))
