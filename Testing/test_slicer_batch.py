@@ -168,6 +168,11 @@ def test_batch_exit_codes_are_the_documented_ones(case, tmp_path, capsys):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
     assert batch.main(base + ["--label", "1", "--out", str(blocker / "x.stl")]) == errors.EXIT_OUTPUT
+    # the outputs of a run are committed together (the run service's transaction, as in the
+    # bonewatertight command): a report that cannot be written leaves no surface behind
+    assert batch.main(base + ["--label", "1", "--out", str(tmp_path / "y.stl"),
+                              "--report", str(blocker / "report.json")]) == errors.EXIT_OUTPUT
+    assert not (tmp_path / "y.stl").exists()
     capsys.readouterr()
     assert batch.main(["--help"]) == errors.EXIT_OK
     assert not list(tmp_path.glob("*.stl"))

@@ -137,7 +137,9 @@ def _open3dForSelfTest(quiet):
     return None if importable() else "installed but it does not import"
 
 
-def _selfTest(args, params, progress):
+def _selfTest(args, params, progress, transaction):
+    """The phantom through the MRML adapter and the run service; returns (report, check) where
+    check() reads the written file back once the transaction committed it."""
     import numpy as np
 
     from BoneWatertightLib import mrml
@@ -148,20 +150,24 @@ def _selfTest(args, params, progress):
     mask = mrml.segment_to_sitk_mask(segNode, segmentId, ctNode)
     out = args.out or os.path.join(tempfile.mkdtemp(prefix="bonewatertight_selftest_"), "sphere.stl")
     report = run.run_case(ct, mask, "phantom", out, params, coordinate_system="RAS" if args.ras else "LPS",
-                          progress=progress, inputs={"self_test": True})
-    # read back as 3D Slicer loads the file: the SPACE tag must put it where the CT is
-    from vtk.util import numpy_support
+                          progress=progress, inputs={"self_test": True}, transaction=transaction)
 
-    points = numpy_support.vtk_to_numpy(mrml.read_model_file(out).GetPolyData().GetPoints().GetData())
-    error = float(np.abs(np.linalg.norm(points - centre, axis=1) - 10.0).max())
-    print(f"SELFTEST max radial error {error:.3f} mm (read back with Slicer's model reader)", flush=True)
-    return [report], error <= 1.0
+    def check():
+        # read back as 3D Slicer loads the file: the SPACE tag must put it where the CT is
+        from vtk.util import numpy_support
+
+        points = numpy_support.vtk_to_numpy(mrml.read_model_file(out).GetPolyData().GetPoints().GetData())
+        error = float(np.abs(np.linalg.norm(points - centre, axis=1) - 10.0).max())
+        print(f"SELFTEST max radial error {error:.3f} mm (read back with Slicer's model reader)", flush=True)
+        return error <= 1.0
+    return report, check
 
 
 def main(argv):
     parser = build_parser()
     from BoneWatertightLib import errors
     from BoneWatertightLib.app import options, run
+    from BoneWatertightLib.io.files import OutputTransaction
     from BoneWatertightLib.report import case_summary_line
 
     try:
@@ -178,7 +184,7 @@ def main(argv):
                 print(f"PROGRESS {fraction:.3f} {message}", flush=True)
             return True
 
-        ok = True
+        check = None
         if args.self_test:
             missing = _open3dForSelfTest(args.quiet)
             if missing:
@@ -186,7 +192,6 @@ def main(argv):
 
                 print(dependency_skip_message(missing), flush=True)
                 return errors.EXIT_DEPENDENCY
-            reports, ok = _selfTest(args, params, progress)
         else:
             missing = [f for f, v in (("--ct", args.ct), ("--seg", args.seg), ("--label", args.label),
                                       ("--out", args.out)) if not v]
@@ -194,15 +199,23 @@ def main(argv):
                 parser.error("missing " + ", ".join(missing) + " (or --self-test)")
             if len(args.label) > 1 and "{label}" not in args.out:
                 parser.error("several labels need {label} in --out")
-            reports = [run.run_files(args.ct, args.seg, label, args.out, params, ct_series=args.ct_series,
-                                     coordinate_system="RAS" if args.ras else "LPS", picture=args.picture,
-                                     intermediates_dir=args.save_intermediates, progress=progress,
-                                     inputs={"preset": args.preset})
-                       for label in args.label]
+        # as the bonewatertight command: every output of the run (surfaces, pictures, report)
+        # is committed together or not at all; SIGINT/SIGTERM/SIGHUP cancel (exit 130)
+        with run.cancel_on_signals(), OutputTransaction() as tx:
+            if args.self_test:
+                report, check = _selfTest(args, params, progress, tx)
+                reports = [report]
+            else:
+                reports = [run.run_files(args.ct, args.seg, label, args.out, params, ct_series=args.ct_series,
+                                         coordinate_system="RAS" if args.ras else "LPS", picture=args.picture,
+                                         intermediates_dir=args.save_intermediates, progress=progress,
+                                         inputs={"preset": args.preset}, transaction=tx)
+                           for label in args.label]
+            if args.report:
+                run.write_reports(args.report, reports, tx)
         for report in reports:
             print("RESULT " + case_summary_line(report), flush=True)
-        if args.report:
-            run.write_reports(args.report, reports)
+        ok = check() if check is not None else True
         return errors.EXIT_OK if ok else errors.EXIT_FAILED
     except SystemExit as exc:  # --help
         return exc.code if isinstance(exc.code, int) else errors.EXIT_OK
