@@ -211,6 +211,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._previewTimer = None
         self._savedViewState = None
         self._updatingSegmentSelector = False
+        self._connectingGui = False  # connectGui writes the sliders: no preview for that
 
     def setup(self) -> None:
         ScriptedLoadableModuleWidget.setup(self)
@@ -325,7 +326,11 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._onParameterNodeModified)
         self._parameterNode = inputParameterNode
         if self._parameterNode:
-            self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
+            self._connectingGui = True
+            try:
+                self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
+            finally:
+                self._connectingGui = False
             self.addObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._onParameterNodeModified)
             self._onParameterNodeModified()
 
@@ -410,6 +415,8 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def onThresholdChanged(self, value=None) -> None:
         # restarts the hide timer on every change: the preview goes once the user stops
+        if self._connectingGui:  # the module was entered or a scene loaded: nobody dragged
+            return
         self._previewController.thresholdsChanged(self.ui.previewCheckBox.checked, self._applyGuard.busy)
 
     def updatePreview(self) -> None:

@@ -176,6 +176,9 @@ def test_widget_wires_sliders_auto_and_timer_through_the_controller():
     assert "clamp_threshold_proposal" in calls
     changed = _calls(_method("onThresholdChanged"))
     assert changed == ["self._previewController.thresholdsChanged"]
+    # connectGui writes the sliders when the module is entered or a scene loads: no preview
+    assert "if self._connectingGui:" in ast.unparse(_method("onThresholdChanged"))
+    assert "self._connectingGui = True" in ast.unparse(_method("setParameterNode"))
     # the per-step work is the cached preview, created once and kept
     update = ast.unparse(_method("updatePreview"))
     assert "mrml.ThresholdPreview(slicer.mrmlScene)" in update and "self._preview.update(" in update
