@@ -625,6 +625,9 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
             checked against the library's schema (type and range).
         :return: the model node.
         :raises BoneWatertightLib.errors.InputError: (a ValueError) bad inputs; the scene is unchanged.
+        :raises BoneWatertightLib.errors.CancelledError: progressCallback returned False, or the
+            scene was closed (or an input or the output node removed) during the run; nothing
+            was written.
         """
         model, _result = self.processWithResult(
             volumeNode, segmentationNode, segmentId, outputModelNode, progressCallback, addAsSegment,
