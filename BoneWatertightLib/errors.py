@@ -85,6 +85,9 @@ class CancelledBySignal(KeyboardInterrupt):
         self.signum = signum
         self.name = name
 
+    def __reduce__(self):  # travels back from a worker process intact
+        return type(self), (self.signum,)
+
 
 # ----------------------------------------------------------------------------------------
 # The one exit-code table of every command line (bonewatertight / python -m BoneWatertightLib,

@@ -153,3 +153,17 @@ def test_python_api_refuses_with_the_parameter_named(values, name):
 ])
 def test_python_api_accepts_meaningful_edge_values(values):
     Parameters(**values).validate()
+
+
+def test_cli_the_same_bone_twice_exit_2_no_file(inputs, tmp_path, capfd):
+    """Two --label values that name one segment (a value and its name) are refused."""
+    _, mask = inputs
+    folder = tmp_path / "in"
+    folder.mkdir()
+    sitk.WriteImage(sitk.ReadImage(mask), str(folder / "mask.nrrd"))
+    (folder / "labels.csv").write_text("value,name\n1,ball\n")
+    code = cli.main(["--ct", inputs[0], "--seg", str(folder / "mask.nrrd"), "--label", "1",
+                     "--label", "ball", "--out", str(tmp_path / "out" / "b_{label}.stl"), "-q"])
+    line = one_line(capfd.readouterr().err)
+    assert code == 2 and "--label 1 and --label ball are the same segment 'ball'" in line, line
+    assert sorted(os.listdir(tmp_path)) == ["in"]

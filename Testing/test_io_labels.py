@@ -278,7 +278,8 @@ def test_two_disjoint_layers_merge_into_one_label_image(tmp_path):
     a[0:2, :, 3:] = 2
     b[2:4, 1:4, 1:4] = 1
     path = seg_nrrd(tmp_path / "layers.seg.nrrd", [a, b],
-                    segment_lines(0, "S_a", "bone a", 1, 0) + segment_lines(1, "S_c", "bone c", 2, 0)
+                    segment_lines(0, "S_a", "bone a", 1, 0)
+                    + segment_lines(1, "S_c", "bone c", 2, 0)
                     + segment_lines(2, "S_b", "bone b", 1, 1))
     image, names = read_label_image(path)
     assert dict(names) == {1: "bone a", 2: "bone c", 3: "bone b"}

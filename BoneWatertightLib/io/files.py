@@ -46,8 +46,10 @@ DEFAULT_NAME_MAX = 255
 _HOST = hashlib.sha1(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:6]
 _TEMP_RE = re.compile(r"^\.(?P<base>.*)\.(?P<host>[0-9a-f]{6})-(?P<pid>\d+)-[0-9a-f]{8}"
                       r"\.(?P<kind>part|prev)(?P<ext>\.[^.]+(\.[^.]+)?)?$")
-# Temporary names of versions before 0.4 (no host or pid): removed only by age.
-_OLD_TEMP_RE = re.compile(r"^\..+\.[0-9a-f]{8}\.part(\.[^.]+(\.[^.]+)?)?$")
+# Temporary names of earlier versions (no host or pid, the extensions they wrote): removed
+# only by age.
+_OLD_TEMP_RE = re.compile(r"^\..+\.[0-9a-f]{8}\.part\.(stl|ply|vtp|vtk|obj|json|png|nrrd|csv|md"
+                          r"|txt)$")
 
 
 # ----------------------------------------------------------------------------------------
@@ -216,7 +218,7 @@ class OutputTransaction:
 
     def __init__(self):
         self._staged: list = []      # [(final path, temporary path)]
-        self._created: list = []     # folders this transaction created, in creation order
+        self._created: list = []     # [(mark when created, folder)], in creation order
         self._swept: set = set()
         self.state = "open"
 
@@ -308,7 +310,7 @@ class OutputTransaction:
                 continue
             except OSError as exc:
                 raise output_error(final, exc, "create the folder of") from None
-            self._created.append(new)
+            self._created.append((len(self._staged), new))
 
     # -- savepoints
 
@@ -317,10 +319,17 @@ class OutputTransaction:
         return len(self._staged)
 
     def discard(self, mark: int = 0) -> None:
-        """Remove the files staged after ``mark`` (they will not be committed)."""
+        """Remove the files staged after ``mark`` (they will not be committed), and the
+        folders created for them when they are empty."""
         for _, tmp in self._staged[mark:]:
             _remove_quietly(tmp)
         del self._staged[mark:]
+        while self._created and self._created[-1][0] >= mark:
+            _, folder = self._created.pop()
+            try:
+                os.rmdir(folder)
+            except OSError:  # not empty: another output of this transaction is in it
+                pass
 
     @property
     def paths(self) -> List[str]:
@@ -385,12 +394,6 @@ class OutputTransaction:
 
     def _abort(self) -> None:
         self.discard(0)
-        for folder in reversed(self._created):
-            try:
-                os.rmdir(folder)
-            except OSError:
-                pass
-        self._created = []
         self.state = "aborted"
 
     def _backup(self, final: str) -> Optional[str]:
