@@ -262,6 +262,10 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             widget.toolTip = spec.describe()
             if spec.kind is bool:
                 widget.text = spec.label
+            elif spec.choices:
+                if widget.count == 0:
+                    for choice in spec.choices:
+                        widget.addItem(choice)
             elif spec.numeric:
                 low, high = spec.panel_range()
                 if spec.kind is float:

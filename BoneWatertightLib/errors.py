@@ -56,6 +56,18 @@ class SurfaceCheckError(ReconstructionError):
         self.report = report
 
 
+class PlausibilityError(ReconstructionError):
+    """A watertight surface that disagrees with its segment or its neighbours beyond the stated
+    bounds (part of the bone missing, grown into a neighbour, no CT edge): the wrong shape.
+
+    ``report`` holds the :class:`~BoneWatertightLib.stages.plausibility.Plausibility` measured.
+    """
+
+    def __init__(self, message, report=None):
+        super().__init__(message)
+        self.report = report
+
+
 class DependencyError(BoneWatertightError, ImportError):
     """A required package (open3d) is missing or unusable."""
 

@@ -34,6 +34,7 @@ STAGES = {
     "poisson": "initial surface M0 (paper 2.3)",
     "deform": "deformation (paper 2.4, 3.3)",
     "refine": "edge refinement (ours)",
+    "joints": "joints and plausibility (ours)",
     "output": "outputs",
 }
 # Sections of the Slicer panel that hold parameters (None: not in the panel).
@@ -232,20 +233,27 @@ class Parameters:
         2500.0, "threshold", "Thresholds", label="Upper limit θmax", unit="HU", minimum=500.0,
         maximum=4000.0, step=10.0, decimals=0, paper="2500, up to 3000+",
         help="Upper HU limit of both threshold windows (excludes metal); must be above H0")
-    h0: float = param(
-        300.0, "threshold", "Thresholds", label="Initial threshold H0", unit="HU",
+    h0: Optional[float] = param(
+        None, "threshold", "Thresholds", label="Initial threshold H0", unit="HU",
         minimum=-500.0, maximum=4000.0, step=5.0, decimals=0, paper="300, hip bone 350",
+        sentinel=-500.0,
+        auto="estimated per case from the CT at the segment's border (soft tissue + 19 % of the "
+             "contrast to the cortex, metal excluded; 300 for a typical femur on thin slices)",
         help="Lower limit of the initial window [H0, theta_max]: only reliable (cortical) bone; "
              "must be above HT")
-    ht: float = param(
-        150.0, "threshold", "Thresholds", label="Target threshold HT", unit="HU",
-        minimum=-500.0, maximum=4000.0, step=5.0, decimals=0, paper="150",
+    ht: Optional[float] = param(
+        None, "threshold", "Thresholds", label="Target threshold HT", unit="HU",
+        minimum=-500.0, maximum=4000.0, step=5.0, decimals=0, paper="150", sentinel=-500.0,
+        auto="estimated per case: soft tissue + 8 % of the contrast, at least 100 HU above soft "
+             "tissue (150 for a typical femur on thin slices)",
         help="Lower limit of the target window [HT, theta_max]: reaches the blurred bone border; "
              "must be below H0")
     max_erosions: int = param(
         3, "threshold", "Advanced", label="Max. erosions m", minimum=1, maximum=10,
         paper="at most 3",
-        help="m: the most erosions tried to separate bone k from its neighbours")
+        help="m: the most erosions (one CT voxel each) of the paper's separation test, reported "
+             "per bone; the bones are separated by their competition at the CT's valley, which "
+             "also works where erosion cannot")
     opening: int = param(
         1, "threshold", "Advanced", label="Opening l", minimum=0, maximum=10,
         help="l: opening iterations on the final masks (removes spurs)")
@@ -313,6 +321,22 @@ class Parameters:
              "of the CT profile (0.5 = half maximum; 0.6 measured best on the phantoms: thin "
              "cortex blurred by the PSF puts the half maximum outside the true border)")
 
+    # --- joints, cut bones, plausibility (ours, SPEC 5b)
+    min_gap: float = param(
+        0.2, "joints", "Advanced", label="Minimum joint gap", unit="mm", minimum=0.0, maximum=2.0,
+        step=0.05, decimals=2,
+        help="Smallest distance kept between the surfaces of two bones (reconstructed together, "
+             "or one and a neighbour given as a label); no surface ever enters another")
+    at_border: str = param(
+        "cap", "prepare", "Advanced", label="Bone cut by the scan", choices=("cap", "error"),
+        help="A bone that the CT's field of view cuts is closed by a flat cap exactly at the "
+             "image boundary (cap faces marked, area reported), or refused (error)")
+    on_implausible: str = param(
+        "fail", "joints", "Advanced", label="Implausible surface", choices=("fail", "warn"),
+        help="A surface that disagrees with its segment beyond the stated bounds (part of the "
+             "bone missing, grown into a neighbour, no CT edge) fails the run (fail), or is "
+             "returned with the warnings in the report (warn)")
+
     # --- outputs
     keep_intermediates: bool = param(
         False, "output", None, label="Keep intermediate results",
@@ -326,10 +350,7 @@ class Parameters:
         """
         for name, spec in SCHEMA.items():
             spec.check(getattr(self, name))
-        if not (self.ht < self.h0 < self.theta_max):
-            raise InputError(
-                f"Thresholds out of order: need HT < H0 < theta_max, got HT={self.ht:g}, "
-                f"H0={self.h0:g}, theta_max={self.theta_max:g}. Lower HT or raise theta_max.")
+        self.check_thresholds(self.h0, self.ht)
         if self.iterations > 0 and self.alpha == 0 and self.beta == 0:
             # Eq. (15) then has no term for the vertices without a match: it has no solution.
             raise InputError(
@@ -338,6 +359,16 @@ class Parameters:
                 "Give alpha or beta a value above 0 (default 1), or iterations 0 to skip the "
                 "deformation.")
         return self
+
+    def check_thresholds(self, h0, ht) -> None:
+        """InputError unless HT < H0 < theta_max (a None, auto, value is not compared)."""
+        order = [("HT", ht), ("H0", h0), ("theta_max", self.theta_max)]
+        given = [(n, v) for n, v in order if v is not None]
+        if any(a[1] >= b[1] for a, b in zip(given, given[1:])):
+            text = ", ".join(f"{n}={v:g}" for n, v in given)
+            raise InputError(
+                f"Thresholds out of order: need HT < H0 < theta_max, got {text}. Lower HT or "
+                "raise theta_max, or leave H0 and HT on auto.")
 
     def replace(self, **changes) -> "Parameters":
         """A copy with ``changes``; InputError for an unknown name."""
@@ -376,14 +407,14 @@ SCHEMA: dict = _build_schema(Parameters)
 
 
 PRESETS = {
-    # Paper §3: femur [300, 2500] / [150, 2500], long bones resampled finer than vertebrae.
-    "femur": dict(h0=300.0, ht=150.0, theta_max=2500.0, max_erosions=2),
-    # Paper Fig. 11: hip bone H0 = 350.
-    "hip": dict(h0=350.0, ht=150.0, theta_max=2500.0, max_erosions=3),
+    # Paper §3. Thresholds are estimated per case (h0/ht auto): the paper's fixed values
+    # (femur 300/150, hip 350/150) hold for thin-slice CT only; give them explicitly if wanted.
+    "femur": dict(theta_max=2500.0, max_erosions=2),
+    "hip": dict(theta_max=2500.0, max_erosions=3),
     # Short bones / vertebrae: narrow gaps, so erode more and look from more directions.
-    "vertebra": dict(h0=300.0, ht=150.0, theta_max=2500.0, max_erosions=3, views=18),
+    "vertebra": dict(theta_max=2500.0, max_erosions=3, views=18),
 }
-"""Each preset sets only its own fields (thresholds and morphology); the rest keep their value."""
+"""Each preset sets only its own fields (morphology, views); the rest keep their value."""
 
 
 def preset_name(name: str) -> str:

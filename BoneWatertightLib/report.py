@@ -26,12 +26,17 @@ class StageTimes:
     import_open3d: float = 0.0
     prepare: float = 0.0
     filter: float = 0.0
+    ownership: float = 0.0
     threshold: float = 0.0
     visible: float = 0.0
     poisson: float = 0.0
+    territories: float = 0.0
     deform: float = 0.0
     refine: float = 0.0
+    contacts: float = 0.0
+    cap: float = 0.0
     checks: float = 0.0
+    plausibility: float = 0.0
     total: float = 0.0
 
 
@@ -101,6 +106,59 @@ class PipelineReport:
     area_mm2: float = 0.0
     volume_mm3: float = 0.0
     constants: dict = field(default_factory=dict)
+    coordinate_system: str = "LPS"
+    units: str = "mm"
+    label: int = 0
+    name: str = ""
+    thresholds: dict = field(default_factory=dict)
+    ownership: dict = field(default_factory=dict)
+    separation: dict = field(default_factory=dict)
+    cap: dict = field(default_factory=dict)
+    contacts: dict = field(default_factory=dict)
+    plausibility: object = None  # BoneWatertightLib.stages.plausibility.Plausibility
+    warnings: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return to_plain(self)
+
+
+@dataclass
+class PairReport:
+    """Two reconstructed bones checked against each other (exactly, on the final surfaces).
+
+    ``crossing_face_pairs`` and the vertex counts inside the other must be 0; ``min_gap_mm`` is
+    the smallest vertex-to-surface distance; ``contact_area_mm2`` the area of the first bone's
+    surface within 1 mm of the second; ``joint_contact_mm2`` / ``joint_valley_seen_fraction``:
+    where their bone evidence touched, and in what fraction of it the CT showed a joint space
+    (the rest was split by the labels)."""
+
+    a: str
+    b: str
+    crossing_face_pairs: int = 0
+    a_inside_b: int = 0
+    b_inside_a: int = 0
+    min_gap_mm: Optional[float] = None
+    contact_area_mm2: float = 0.0
+    joint_contact_mm2: float = 0.0
+    joint_valley_seen_fraction: Optional[float] = None
+
+    @property
+    def ok(self) -> bool:
+        return self.crossing_face_pairs == 0 and self.a_inside_b == 0 and self.b_inside_a == 0
+
+
+@dataclass
+class JointReport:
+    """What a several-bone run shares: grid, thresholds, ownership, per-pair checks, times."""
+
+    version: str
+    parameters: dict
+    input: dict
+    thresholds: dict
+    ownership: dict
+    pairs: list
+    timings: StageTimes
+    neighbours: list = field(default_factory=list)
     coordinate_system: str = "LPS"
     units: str = "mm"
 

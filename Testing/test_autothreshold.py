@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from BoneWatertightLib.stages.autothreshold import propose_thresholds, tissue_levels
+from BoneWatertightLib.stages.autothreshold import auto_thresholds, propose_thresholds, tissue_levels
 from BoneWatertightLib.errors import EmptySegmentError, ThresholdError
 
 
@@ -60,10 +60,46 @@ def test_errors():
         propose_thresholds(flat, mask)
 
 
-def test_tissue_levels_mode_is_robust_to_bone_in_shell():
-    rng = np.random.default_rng(0)
-    shell = np.concatenate([rng.normal(35, 10, 5000), rng.normal(1200, 100, 1500)])
-    inside = np.concatenate([rng.normal(1300, 80, 3000), rng.normal(120, 30, 3000)])
-    soft, cortex = tissue_levels(inside, shell)
-    assert soft == pytest.approx(35, abs=10)
-    assert cortex > 1300
+def _tube_arrays(soft=40.0, cortex=1400.0, fat_shell=False, metal=False, thick_slices=False):
+    """(ct, labels) (z, y, x) arrays: a cortical tube (label 1) and a second bone (label 2)."""
+    n = 48
+    z, y, x = np.mgrid[0:n, 0:n, 0:n].astype(float)
+    r = np.hypot(x - 20, y - 24)
+    hu = np.full(r.shape, soft)
+    if fat_shell:
+        hu[(r > 11) & (r < 14)] = -100.0  # fat around the bone
+    hu[r <= 9.0] = cortex
+    hu[r <= 6.0] = 150.0
+    if metal:
+        hu[10:30, 22:26, 18:22] = 3500.0  # an implant in the bone
+    r2 = np.hypot(x - 40, y - 24)
+    hu[r2 <= 4.0] = 900.0  # the neighbour
+    if thick_slices:
+        from scipy import ndimage
+        hu = ndimage.uniform_filter1d(hu, 4, axis=1)  # partial volume
+    labels = np.zeros(r.shape, np.uint16)
+    labels[r <= 9.0] = 1
+    labels[r2 <= 4.0] = 2
+    return hu, labels
+
+
+def test_fat_and_other_bones_are_not_soft_tissue():
+    hu, labels = _tube_arrays(fat_shell=True)
+    soft, cortex = tissue_levels(hu, labels == 1, labels > 0, (1.0, 1.0, 1.0), 1.0)
+    assert soft == pytest.approx(40, abs=5)
+    assert cortex == pytest.approx(1400, abs=5)
+
+
+def test_metal_does_not_raise_the_thresholds():
+    clean = auto_thresholds(*_tube_arrays(), [1], (1.0, 1.0, 1.0), 1.0)
+    metal = auto_thresholds(*_tube_arrays(metal=True), [1], (1.0, 1.0, 1.0), 1.0)
+    assert metal["cortex"] == pytest.approx(clean["cortex"], abs=30)
+    assert abs(metal["h0"] - clean["h0"]) <= 10 and metal["h0"] < 400
+
+
+def test_partial_volume_lowers_the_thresholds_with_floors():
+    thin = auto_thresholds(*_tube_arrays(), [1], (1.0, 1.0, 1.0), 1.0)
+    thick = auto_thresholds(*_tube_arrays(cortex=500.0, thick_slices=True), [1], (1.0, 1.0, 3.0), 3.0)
+    assert thick["h0"] < thin["h0"]
+    assert thick["ht"] >= thick["soft_tissue"] + 100 - 1  # never at the soft-tissue level
+    assert thick["h0"] >= thick["ht"] + 50 - 1

@@ -260,7 +260,8 @@ def test_parameters_from_options():
                               "--spacing", "auto", "--edge-length", "0.8",
                               "--save-intermediates", "x"])
     p = cli.parameters_from_args(args)
-    assert (p.h0, p.ht, p.refine_edges, p.spacing, p.edge_length) == (360.0, 150.0, False,
+    # the preset sets morphology only; HT stays automatic (None)
+    assert (p.h0, p.ht, p.refine_edges, p.spacing, p.edge_length) == (360.0, None, False,
                                                                        None, 0.8)
     assert p.keep_intermediates is True
     assert p.max_erosions == 3  # from the hip preset

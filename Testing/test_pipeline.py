@@ -243,14 +243,18 @@ def test_error_empty_segment_and_no_overlap():
     far.SetOrigin((500.0, 500.0, 500.0))
     with pytest.raises(errors.NoOverlapError):
         reconstruct(ct, far, Parameters())
+    with pytest.raises(errors.EmptySegmentError):
+        reconstruct(ct, None, Parameters())
 
 
 def test_error_no_voxel_in_windows():
     ct, mask = _ball_ct()
     with pytest.raises(errors.ThresholdError, match="HT"):
         reconstruct(ct, mask, Parameters(ht=1500, h0=1800, theta_max=2500))
-    with pytest.raises(errors.ThresholdError, match="H0"):
-        reconstruct(ct, mask, Parameters(ht=150, h0=1500, theta_max=2500))
+    # An H0 above every voxel: the segment's core still says bone, but the surface has no CT
+    # edge and the plausibility gate refuses it (never a success).
+    with pytest.raises((errors.PlausibilityError, errors.ReconstructionError)):
+        reconstruct(ct, mask, Parameters(ht=1400, h0=1500, theta_max=2500))
 
 
 def test_error_volume_types():
@@ -273,7 +277,7 @@ def test_error_segment_touching_border_and_memory_limit():
     border = sitk.GetImageFromArray(arr)
     border.CopyInformation(mask)
     with pytest.raises(errors.BorderError, match="border"):
-        reconstruct(ct, border, Parameters())
+        reconstruct(ct, border, Parameters(at_border="error"))
     with pytest.raises(errors.MemoryLimitError, match="spacing of at least"):
         reconstruct(ct, mask, Parameters(spacing=0.05, max_memory_gb=0.5))
 

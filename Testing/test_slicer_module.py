@@ -394,9 +394,10 @@ def test_auto_on_metal_ct_gives_values_the_parameter_node_accepts():
     mask = sitk.GetImageFromArray((r < 11).astype(np.uint8))
     seg, segId = mrml.segmentation_node_from_mask(scene, mask)
     proposal = mrml.propose_thresholds(volume, seg, segId)
-    assert proposal["theta_max"] > SCHEMA["theta_max"].maximum  # what the panel used to write
-    values, notes = clamp_threshold_proposal(proposal)
-    _panel_ok(values)
+    # metal is left out of the estimate: theta_max is kept and H0 stays a bone level
+    assert proposal["theta_max"] <= SCHEMA["theta_max"].maximum and proposal["h0"] < 600
+    values, notes = clamp_threshold_proposal(dict(proposal, theta_max=20000.0))
+    _panel_ok(values)  # and the panel's clamp still guards values from elsewhere
     assert notes
 
 

@@ -21,13 +21,15 @@ class Surface:
 
     ``vertices`` (n, 3) float64, ``faces`` (m, 3) int64 with counter-clockwise order seen
     from outside. ``coordinate_system`` is "LPS" (ITK, the library's default) or "RAS".
-    ``point_data`` holds per-vertex arrays (e.g. "DistanceToConstraints").
+    ``point_data`` holds per-vertex arrays (e.g. "DistanceToConstraints"), ``cell_data``
+    per-face arrays (e.g. "Cap": 1 on the faces of a cap where the bone leaves the image).
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     coordinate_system: str = "LPS"
     point_data: dict = field(default_factory=dict)
+    cell_data: dict = field(default_factory=dict)
 
     def __post_init__(self):
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
@@ -43,7 +45,8 @@ class Surface:
 
     def copy(self) -> "Surface":
         return Surface(self.vertices.copy(), self.faces.copy(), self.coordinate_system,
-                       {k: np.array(v, copy=True) for k, v in self.point_data.items()})
+                       {k: np.array(v, copy=True) for k, v in self.point_data.items()},
+                       {k: np.array(v, copy=True) for k, v in self.cell_data.items()})
 
     def vertex_normals(self) -> np.ndarray:
         return vertex_normals(self.vertices, self.faces)
@@ -104,6 +107,15 @@ def to_polydata(surface: Surface, normals: bool = True):
         arr = ns.numpy_to_vtk(np.ascontiguousarray(values, dtype=np.float64), deep=True)
         arr.SetName(name)
         poly.GetPointData().AddArray(arr)
+    for name, values in surface.cell_data.items():
+        values = np.ascontiguousarray(values)
+        if values.dtype.kind in "bu" or values.dtype.kind == "i":
+            arr = ns.numpy_to_vtk(values.astype(np.uint8 if values.max(initial=0) < 256 else np.int32),
+                                  deep=True)
+        else:
+            arr = ns.numpy_to_vtk(values.astype(np.float64), deep=True)
+        arr.SetName(name)
+        poly.GetCellData().AddArray(arr)
     return poly
 
 
@@ -134,4 +146,11 @@ def from_polydata(poly, coordinate_system: str = "LPS") -> Surface:
             continue
         if arr.GetNumberOfComponents() == 1:
             point_data[arr.GetName()] = ns.vtk_to_numpy(arr).astype(np.float64)
-    return Surface(pts, faces, coordinate_system, point_data)
+    cell_data = {}
+    cd = poly.GetCellData()
+    if len(faces) == poly.GetNumberOfCells():
+        for i in range(cd.GetNumberOfArrays()):
+            arr = cd.GetArray(i)
+            if arr is not None and arr.GetName() and arr.GetNumberOfComponents() == 1:
+                cell_data[arr.GetName()] = ns.vtk_to_numpy(arr).copy()
+    return Surface(pts, faces, coordinate_system, point_data, cell_data)

@@ -1,83 +1,137 @@
-"""Propose the two threshold windows (H0, HT) from the HU histogram around a rough segment.
+"""Automatic thresholds: H0 and HT per case, from the CT inside and around the segment(s).
 
 Reading of the paper: H0 must select only reliable (cortical) bone and HT must reach the
-blurred bone border, both above the surrounding soft tissue. We measure two tissue levels:
-the soft-tissue level (histogram mode of a shell just outside the segment) and the cortical
-level (a high percentile inside the segment), and place HT and H0 at fixed fractions of the
-contrast between them. The fractions are chosen so that a typical adult femur (soft tissue
-~40 HU, cortex ~1400 HU) gets the paper's HT = 150 and H0 = 300.
+blurred bone border, both above the surrounding soft tissue. Two tissue levels are measured on
+the CT's own grid:
+
+- the **soft-tissue level**: the median of the voxels in a shell just outside the segments
+  (between half the segmentation's coarseness and SHELL_MM), within SOFT_TISSUE_WINDOW - fat is
+  left out (it is below the window), so is other bone or contrast (above it);
+- the **cortical level**: a high percentile of the bone-like voxels (at least BONE_ABOVE_SOFT
+  above soft tissue, below METAL_HU: metal and its streaks would otherwise dominate) in a band
+  around the segments' boundary, where the cortex is: up to max(coarseness, BAND_MIN_MM)
+  inside (a generous segment) and one coarseness outside (a tight one). On thick slices
+  partial volume lowers this level, and the thresholds follow.
+
+HT and H0 are then fixed fractions of the contrast above soft tissue, with floors: HT at least
+HT_MIN_ABOVE_SOFT above soft tissue (muscle, discs and cartilage lie up to ~100 HU above it), H0
+at least H0_MIN_ABOVE_HT above HT. The fractions give a typical adult femur on thin slices
+(soft tissue ~40 HU, cortex ~1300-1400 HU) the paper's HT = 150 and H0 = 300.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import SimpleITK as sitk
+from scipy import ndimage
 
 from ..errors import EmptySegmentError, ThresholdError
 
 HT_FRACTION = 0.08
 H0_FRACTION = 0.19
-CORTEX_PERCENTILE = 95.0
-SOFT_TISSUE_WINDOW = (-250.0, 250.0)
+HT_MIN_ABOVE_SOFT = 100.0
+H0_MIN_ABOVE_HT = 50.0
+CORTEX_PERCENTILE = 90.0
+SOFT_TISSUE_WINDOW = (-30.0, 250.0)
+SHELL_MM = 4.0
+METAL_HU = 2000.0
+BONE_ABOVE_SOFT = 100.0
+BAND_MIN_MM = 3.0
 MIN_CONTRAST = 250.0
+# Used when the shell has fewer voxels than this.
+MIN_SHELL_VOXELS = 20
+DEFAULT_SOFT_TISSUE = 40.0
 
 
-def _on_ct_grid(ct: sitk.Image, mask: sitk.Image) -> sitk.Image:
+def tissue_levels(ct: np.ndarray, inside: np.ndarray, labelled: np.ndarray,
+                  spacing_xyz, coarseness: float) -> tuple:
+    """(soft-tissue HU, cortical HU) on the CT's own grid.
+
+    Parameters
+    ----------
+    ct : (z, y, x) float array (HU)
+    inside : (z, y, x) bool array
+        The segment(s) whose bone is measured.
+    labelled : (z, y, x) bool array
+        Every labelled voxel (other bones are not soft tissue).
+    spacing_xyz : sequence of 3 floats
+        The CT's spacing (x, y, z) in mm.
+    coarseness : float
+        The segmentation's coarseness (mm).
+    """
+    sampling = tuple(float(v) for v in spacing_xyz[::-1])
+    d_in = ndimage.distance_transform_edt(np.pad(inside, 1), sampling=sampling)[1:-1, 1:-1, 1:-1]
+    d_out = ndimage.distance_transform_edt(~inside, sampling=sampling)
+    band = (inside & (d_in <= max(coarseness, BAND_MIN_MM) + 1e-6)) | \
+        (~labelled & (d_out <= coarseness + 1e-6) & (d_out > 0))
+    shell = ~inside & ~labelled & (d_out <= SHELL_MM) & (d_out > 0.5 * coarseness)
+    lo, hi = SOFT_TISSUE_WINDOW
+    s = ct[shell]
+    s = s[(s >= lo) & (s <= hi)]
+    if s.size < MIN_SHELL_VOXELS:
+        s = ct[~inside & (d_out <= 2 * SHELL_MM)]
+        s = s[(s >= lo) & (s <= hi)]
+    soft = float(np.median(s)) if s.size >= MIN_SHELL_VOXELS else DEFAULT_SOFT_TISSUE
+    v = ct[band]
+    v = v[(v >= soft + BONE_ABOVE_SOFT) & (v < METAL_HU)]
+    if v.size < MIN_SHELL_VOXELS:
+        v = ct[inside]
+    cortex = float(np.percentile(v, CORTEX_PERCENTILE))
+    return soft, cortex
+
+
+def thresholds_from_levels(soft: float, cortex: float, theta_max: float) -> dict:
+    """{"h0", "ht", "soft_tissue", "cortex"}; ThresholdError when there is no bone contrast."""
+    contrast = cortex - soft
+    if contrast < MIN_CONTRAST:
+        raise ThresholdError(
+            f"No bone contrast at the segment's border: soft tissue ~{soft:.0f} HU, cortex "
+            f"~{cortex:.0f} HU. Check that the segment covers a bone on this CT, or give H0 and "
+            "HT by hand.")
+    ht = soft + max(HT_FRACTION * contrast, HT_MIN_ABOVE_SOFT)
+    h0 = max(soft + H0_FRACTION * contrast, ht + H0_MIN_ABOVE_HT)
+    h0 = min(h0, theta_max - H0_MIN_ABOVE_HT)
+    ht = min(ht, h0 - H0_MIN_ABOVE_HT)
+    return {"h0": float(round(h0)), "ht": float(round(ht)), "soft_tissue": soft, "cortex": cortex}
+
+
+def auto_thresholds(ct: np.ndarray, labels: np.ndarray, targets, spacing_xyz, coarseness: float,
+                    theta_max: float = 2500.0) -> dict:
+    """Thresholds for the targets of a label map (arrays on the CT's own grid, (z, y, x)).
+
+    ``targets``: label values. Returns {"h0", "ht", "soft_tissue", "cortex"} in HU."""
+    inside = np.isin(labels, list(targets))
+    if not inside.any():
+        raise EmptySegmentError("The segment is empty; thresholds cannot be proposed.")
+    soft, cortex = tissue_levels(ct, inside, labels > 0, spacing_xyz, coarseness)
+    return thresholds_from_levels(soft, cortex, theta_max)
+
+
+def propose_thresholds(ct: sitk.Image, mask: sitk.Image, theta_max: float = 2500.0) -> dict:
+    """Suggested ``{"h0", "ht", "theta_max", "soft_tissue", "cortex"}`` for one segment (the
+    panel's Auto): the same estimate as the pipeline's automatic thresholds.
+
+    ``mask`` is the segment (any grid, resampled nearest-neighbour onto the CT grid).
+    Raises EmptySegmentError for an empty mask and ThresholdError without bone contrast.
+    """
     same = (ct.GetSize() == mask.GetSize()
             and np.allclose(ct.GetOrigin(), mask.GetOrigin(), atol=1e-4)
             and np.allclose(ct.GetSpacing(), mask.GetSpacing(), atol=1e-6)
             and np.allclose(ct.GetDirection(), mask.GetDirection(), atol=1e-6))
-    if same:
-        return mask
-    return sitk.Resample(mask, ct, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
-
-
-def tissue_levels(ct_values_inside: np.ndarray, ct_values_shell: np.ndarray) -> tuple:
-    """(soft-tissue HU, cortical HU) from the voxel values inside the segment and in a shell around it."""
-    lo, hi = SOFT_TISSUE_WINDOW
-    soft_vals = ct_values_shell[(ct_values_shell >= lo) & (ct_values_shell <= hi)]
-    if soft_vals.size < 20:
-        soft_vals = ct_values_inside[(ct_values_inside >= lo) & (ct_values_inside <= hi)]
-    if soft_vals.size:
-        # The mode (10 HU bins) is robust to the fat/muscle mixture and to bone in the shell.
-        hist, edges = np.histogram(soft_vals, bins=np.arange(lo, hi + 10.0, 10.0))
-        k = int(np.argmax(hist))
-        soft = float(0.5 * (edges[k] + edges[k + 1]))
-    else:
-        soft = 40.0
-    cortex = float(np.percentile(ct_values_inside, CORTEX_PERCENTILE))
-    return soft, cortex
-
-
-def propose_thresholds(ct: sitk.Image, mask: sitk.Image, theta_max: float = 2500.0,
-                       shell_mm: float = 4.0) -> dict:
-    """Suggested ``{"h0", "ht", "theta_max", "soft_tissue", "cortex"}`` in HU.
-
-    ``mask`` is the rough segment (any grid, resampled nearest onto the CT grid).
-    Raises EmptySegmentError for an empty mask and ThresholdError when the region shows no
-    bone contrast.
-    """
-    mask = _on_ct_grid(ct, mask)
-    m = sitk.GetArrayViewFromImage(mask) > 0
-    if not m.any():
+    m = sitk.Cast(mask != 0, sitk.sitkUInt8)
+    if not same:
+        m = sitk.Resample(m, ct, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
+    arr = sitk.GetArrayViewFromImage(m) > 0
+    if not arr.any():
         raise EmptySegmentError("The segment is empty; thresholds cannot be proposed.")
-    radius = [max(1, int(round(shell_mm / s))) for s in ct.GetSpacing()]
-    dilated = sitk.GetArrayFromImage(
-        sitk.BinaryDilate(sitk.Cast(mask > 0, sitk.sitkUInt8), radius, sitk.sitkBall)) > 0
-    values = sitk.GetArrayViewFromImage(ct)
-    inside = np.asarray(values[m], dtype=np.float64)
-    shell = np.asarray(values[dilated & ~m], dtype=np.float64)
-    soft, cortex = tissue_levels(inside, shell)
-    contrast = cortex - soft
-    if contrast < MIN_CONTRAST:
-        raise ThresholdError(
-            f"No bone contrast inside the segment: soft tissue ~{soft:.0f} HU, brightest 5% of the "
-            f"segment ~{cortex:.0f} HU. Check that the segment covers the bone on this CT.")
-    ht = soft + HT_FRACTION * contrast
-    h0 = soft + H0_FRACTION * contrast
-    top = max(float(theta_max), float(np.percentile(inside, 99.9)) + 1.0)
-    # Keep the windows ordered and non-degenerate even for unusual contrasts.
-    ht = float(np.clip(ht, soft + 50.0, top - 100.0))
-    h0 = float(np.clip(h0, ht + 50.0, top - 50.0))
-    return {"h0": round(h0), "ht": round(ht), "theta_max": round(top),
-            "soft_tissue": soft, "cortex": cortex}
+    # Work on the segment's box + margin of the CT grid only.
+    sp = np.array(ct.GetSpacing())
+    nz = np.nonzero(arr)
+    pad = np.ceil(2 * SHELL_MM / sp[::-1]).astype(int) + 1
+    box = tuple(slice(max(0, int(a.min()) - p), int(a.max()) + p + 1) for a, p in zip(nz, pad))
+    values = sitk.GetArrayViewFromImage(ct)[box].astype(np.float64)
+    coarse = float(max(max(mask.GetSpacing()), max(sp)))
+    soft, cortex = tissue_levels(values, arr[box], arr[box], sp, coarse)
+    out = thresholds_from_levels(soft, cortex, theta_max)
+    out["theta_max"] = float(theta_max)
+    return out

@@ -210,3 +210,243 @@ def prepare(ct: sitk.Image, mask: sitk.Image, *, spacing: float | None = None,
     }
     return Prepared(grid=grid, ct=sitk.GetArrayFromImage(ct_res), segment=sitk.GetArrayFromImage(seg_res) > 0,
                     ct_spacing=tuple(float(v) for v in spacing_ct), info=info)
+
+
+# ---------------------------------------------------------------------------------------------
+# several segments at once (the joint-aware pipeline)
+
+# Where a target touches the image border, the working grid continues past it by this much
+# (mm, and at least CUT_EXTENSION_VOXELS CT voxels), with CT and labels replicated.
+CUT_EXTENSION_MM = 5.0
+CUT_EXTENSION_VOXELS = 2
+
+
+@dataclass
+class CapPlane:
+    """A plane of the CT's boundary that cuts a target: grid millimetres q (x, y, z) with
+    ``(q[axis] - position) * side <= 0`` are inside the image (``position`` = the outer face of
+    the image's first or last voxel, where 3D Slicer closes a padded segmentation)."""
+
+    axis: int        # 0, 1, 2 = grid x, y, z (= the CT's i, j, k)
+    side: int        # -1: the image's low side, +1: its high side
+    position: float  # grid-mm coordinate of the plane along axis
+
+    def to_dict(self) -> dict:
+        return {"axis": "ijk"[self.axis], "side": "low" if self.side < 0 else "high",
+                "position_mm": self.position}
+
+
+@dataclass
+class PreparedLabels:
+    """The working grid of a several-bone run.
+
+    ``ct`` (z, y, x) float32 HU; ``labels`` (z, y, x) uint16: label index 1..n (0 background)
+    of the segmentation's labels present in the crop, whose values are ``values[index - 1]``;
+    ``targets``: the indices to reconstruct; ``caps``: index -> planes where that target is cut
+    by the CT's border; ``coarseness``: how coarse the segmentation is (mm: its own voxel size
+    or the CT's coarsest spacing, whichever is larger); ``native``: the crop on the CT's own grid
+    (ct (z, y, x) float32, label values (z, y, x), CT spacing (x, y, z)) for the threshold
+    estimate."""
+
+    grid: Grid
+    ct: np.ndarray
+    labels: np.ndarray
+    values: list
+    targets: list
+    coarseness: float
+    caps: dict
+    native: tuple
+    ct_spacing: tuple
+    info: dict
+
+
+def labels_on_ct_grid(ct: sitk.Image, labels: sitk.Image) -> np.ndarray:
+    """The label map resampled nearest-neighbour onto the CT grid, as a (z, y, x) uint32 array."""
+    if not isinstance(labels, sitk.Image):
+        raise EmptySegmentError("No segmentation was given: select the segment of the bone.")
+    if labels.GetDimension() != 3 or labels.GetNumberOfComponentsPerPixel() != 1:
+        raise InputError("The segmentation must be a 3-D label map with one value per voxel "
+                         f"(got {labels.GetDimension()}-D, "
+                         f"{labels.GetNumberOfComponentsPerPixel()} components).")
+    if labels.GetPixelID() in (sitk.sitkFloat32, sitk.sitkFloat64):
+        arr = sitk.GetArrayViewFromImage(labels)
+        if not np.all(np.isfinite(arr)) or not np.array_equal(arr, np.round(arr)) or arr.min() < 0:
+            raise InputError("The segmentation has non-integer or negative values: it is not a "
+                             "label map.")
+    img = sitk.Cast(labels, sitk.sitkUInt32)
+    same = (labels.GetSize() == ct.GetSize()
+            and np.allclose(labels.GetOrigin(), ct.GetOrigin(), atol=1e-4)
+            and np.allclose(labels.GetSpacing(), ct.GetSpacing(), atol=1e-6)
+            and np.allclose(labels.GetDirection(), ct.GetDirection(), atol=1e-6))
+    if not same:
+        img = sitk.Resample(img, ct, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt32)
+    return sitk.GetArrayFromImage(img)
+
+
+def check_finite_ct(ct: sitk.Image) -> None:
+    """InputError when a float CT has NaN or infinite voxels (count and the first index)."""
+    if ct.GetPixelID() not in (sitk.sitkFloat32, sitk.sitkFloat64):
+        return
+    arr = sitk.GetArrayViewFromImage(ct)
+    bad = ~np.isfinite(arr)
+    count = int(np.count_nonzero(bad))
+    if count:
+        zyx = np.unravel_index(int(np.flatnonzero(bad.ravel())[0]), arr.shape)
+        raise InputError(
+            f"The CT has {count} voxel(s) that are not a number (NaN or infinite); the first at "
+            f"voxel index (i, j, k) = {tuple(int(v) for v in zyx[::-1])}. Replace them with a "
+            "value in HU (e.g. -1000 for air) where the volume was made, or crop them away.")
+
+
+def prepare_labels(ct: sitk.Image, labels: sitk.Image, targets, *, spacing: float | None = None,
+                   margin: float = 5.0, band_mm: float = 3.0, max_memory_gb: float = 4.0,
+                   at_border: str = "cap", progress=None) -> PreparedLabels:
+    """Validate; label map onto the CT grid; crop to the targets + margin; continue the grid past
+    the image border where a target is cut; B-spline resample the CT and nearest-neighbour the
+    labels onto an isotropic working grid.
+
+    Parameters
+    ----------
+    ct : SimpleITK.Image
+        Scalar 3-D CT in HU, any orthonormal direction. Not modified.
+    labels : SimpleITK.Image
+        Integer label map (0 background), any geometry: every label is a bone. Not modified.
+    targets : sequence of int
+        Label values to reconstruct (each must have voxels on the CT grid).
+    spacing : float or None
+        Working spacing d in mm; None: :func:`auto_spacing`.
+    margin, band_mm : float
+        Crop margin around the targets, and how far a bone may reach beyond its label (mm).
+    max_memory_gb : float
+        Refuse (MemoryLimitError, naming a spacing that fits) above this estimate.
+    at_border : {"cap", "error"}
+        A target touching the CT's border is capped there (default) or refused (BorderError).
+    """
+    validate_ct(ct)
+    if _looks_like_labelmap(sitk.GetArrayViewFromImage(ct)):
+        raise VolumeTypeError(
+            "The selected volume looks like a label map (few non-negative integer values), not a "
+            "CT in Hounsfield units: select the CT volume as input.")
+    check_finite_ct(ct)
+    coarse = float(max(max(labels.GetSpacing()), max(ct.GetSpacing())))
+    lab_ct = labels_on_ct_grid(ct, labels)
+    if progress:
+        progress(0.15, "segments on the CT grid")
+    targets = [int(t) for t in targets]
+    if len(set(targets)) != len(targets):
+        raise InputError("The same bone is asked for twice; give each label once.")
+    size = np.array(ct.GetSize())
+    tmask = np.isin(lab_ct, targets)
+    if not tmask.any():
+        own = sitk.GetArrayViewFromImage(labels)
+        if not np.isin(own, targets).any():
+            raise EmptySegmentError(
+                "The segment is empty: paint at least a rough outline of the bone (or pick a "
+                "segment that has voxels).")
+        raise NoOverlapError(
+            "None of the requested segments overlaps the CT volume in physical space: check that "
+            "the segmentation was made on this CT (or one with the same patient coordinates).")
+    cut = {}
+    for t in targets:
+        z, y, x = np.nonzero(lab_ct == t)
+        if len(z) == 0:
+            raise EmptySegmentError(
+                f"Segment {t} has no voxel on the CT grid (it is empty or lies outside the CT): "
+                "paint the bone in it, or pick another segment.")
+        sides = []
+        for ax, idx in enumerate((x, y, z)):
+            if idx.min() == 0:
+                sides.append((ax, -1))
+            if idx.max() == size[ax] - 1:
+                sides.append((ax, +1))
+        cut[t] = sides
+    if at_border == "error":
+        for t in targets:
+            if cut[t]:
+                names = ", ".join(f"{'ijk'[a]} {'low' if s < 0 else 'high'}" for a, s in cut[t])
+                raise BorderError(
+                    f"Segment {t} touches the border of the CT volume ({names}): the bone is cut "
+                    "by the scan. With at_border = cap (the default) it is closed by a flat cap at "
+                    "the image boundary; or use a CT that contains the whole bone.")
+    nz = np.nonzero(tmask)
+    lo = np.array([nz[2].min(), nz[1].min(), nz[0].min()])
+    hi = np.array([nz[2].max(), nz[1].max(), nz[0].max()])
+    spacing_ct = np.array(ct.GetSpacing(), dtype=np.float64)
+    margin_vox = np.ceil((margin + band_mm) / spacing_ct).astype(int) + 1
+    lo_c = np.maximum(lo - margin_vox, 0)
+    hi_c = np.minimum(hi + margin_vox, size - 1)
+    crop_size = hi_c - lo_c + 1
+    pad_lo = np.zeros(3, int)
+    pad_hi = np.zeros(3, int)
+    for sides in cut.values():
+        for ax, side in sides:
+            n = int(max(np.ceil(CUT_EXTENSION_MM / spacing_ct[ax]), CUT_EXTENSION_VOXELS))
+            if side < 0:
+                pad_lo[ax] = max(pad_lo[ax], n)
+            else:
+                pad_hi[ax] = max(pad_hi[ax], n)
+    d = float(spacing) if spacing else auto_spacing(ct)
+    extent_mm = (crop_size + pad_lo + pad_hi - 1) * spacing_ct
+    need = estimate_memory_bytes(extent_mm, d)
+    limit = max_memory_gb * 1024 ** 3
+    if need > limit:
+        fit = d * (need / limit) ** (1.0 / 3.0)
+        raise MemoryLimitError(
+            f"Resampling the {extent_mm[0]:.0f} x {extent_mm[1]:.0f} x {extent_mm[2]:.0f} mm region "
+            f"at {d:g} mm would need about {need / 1024 ** 3:.1f} GB (limit {max_memory_gb:g} GB): "
+            f"use a spacing of at least {np.ceil(fit * 100) / 100:.2f} mm, or raise max_memory_gb.")
+    start = [int(v) for v in lo_c]
+    extent = [int(v) for v in crop_size]
+    ct_crop = sitk.RegionOfInterest(ct, extent, start)
+    native_ct = sitk.GetArrayFromImage(ct_crop).astype(np.float32)
+    native_lab = lab_ct[lo_c[2]:hi_c[2] + 1, lo_c[1]:hi_c[1] + 1, lo_c[0]:hi_c[0] + 1]
+    lab_img = sitk.GetImageFromArray(np.ascontiguousarray(native_lab, dtype=np.uint32))
+    lab_img.CopyInformation(ct_crop)
+    ct_crop = sitk.Cast(ct_crop, sitk.sitkFloat32)
+    if pad_lo.any() or pad_hi.any():
+        ct_crop = sitk.ZeroFluxNeumannPad(ct_crop, [int(v) for v in pad_lo], [int(v) for v in pad_hi])
+        lab_img = sitk.ZeroFluxNeumannPad(lab_img, [int(v) for v in pad_lo], [int(v) for v in pad_hi])
+    direction = np.array(ct.GetDirection()).reshape(3, 3)
+    origin = np.array(ct_crop.GetOrigin())
+    new_size = [int(np.floor(e / d + 1e-9)) + 1 for e in extent_mm]
+    ref = sitk.Image(new_size, sitk.sitkFloat32)
+    ref.SetSpacing([d, d, d])
+    ref.SetOrigin(origin.tolist())
+    ref.SetDirection(direction.ravel().tolist())
+    if progress:
+        progress(0.3, "B-spline resampling")
+    ct_res = sitk.GetArrayFromImage(sitk.Resample(ct_crop, ref, sitk.Transform(), sitk.sitkBSpline,
+                                                  OUTSIDE_HU, sitk.sitkFloat32))
+    if progress:
+        progress(0.8, "labels onto the working grid")
+    lab_res = sitk.GetArrayFromImage(sitk.Resample(lab_img, ref, sitk.Transform(),
+                                                   sitk.sitkNearestNeighbor, 0, sitk.sitkUInt32))
+    values = [int(v) for v in np.unique(lab_res) if v != 0]
+    missing = [t for t in targets if t not in values]
+    if missing:
+        raise EmptySegmentError(
+            f"Segment(s) {', '.join(map(str, missing))} vanish on the working grid at {d:g} mm "
+            "(too small): use a finer spacing.")
+    lut = np.zeros(max(values) + 1, np.uint16)
+    for i, v in enumerate(values, start=1):
+        lut[v] = i
+    lab_idx = lut[lab_res]
+    grid = Grid(origin=origin, direction=direction, spacing=d,
+                shape_zyx=tuple(int(v) for v in reversed(new_size)))
+    first = (pad_lo - lo_c - 0.5) * spacing_ct           # outer face of the CT's first voxel
+    last = (size - 1 - lo_c + pad_lo + 0.5) * spacing_ct  # ... and of its last voxel
+    caps = {values.index(t) + 1: [CapPlane(ax, side, float(first[ax] if side < 0 else last[ax]))
+                                  for ax, side in cut[t]] for t in targets}
+    info = {"ct_size": [int(v) for v in size], "ct_spacing_mm": spacing_ct.tolist(),
+            "crop_index": [int(v) for v in lo_c], "crop_size": [int(v) for v in crop_size],
+            "cut_extension_voxels": {"low": pad_lo.tolist(), "high": pad_hi.tolist()},
+            "resample_spacing_mm": d, "grid_size": new_size,
+            "estimated_memory_gb": need / 1024 ** 3,
+            "segmentation_coarseness_mm": coarse, "labels_in_crop": values,
+            "segment_voxels_on_ct": {str(t): int((native_lab == t).sum()) for t in targets}}
+    if progress:
+        progress(1.0, "prepared")
+    return PreparedLabels(grid=grid, ct=ct_res, labels=lab_idx, values=values,
+                          targets=[values.index(t) + 1 for t in targets], coarseness=coarse,
+                          caps=caps, native=(native_ct, native_lab, tuple(spacing_ct.tolist())),
+                          ct_spacing=tuple(spacing_ct.tolist()), info=info)

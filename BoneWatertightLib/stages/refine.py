@@ -47,7 +47,8 @@ OUTLIER_VOXELS = 0.8
 
 def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
                     max_shift=MAX_SHIFT_MM, min_contrast=MIN_CONTRAST_HU,
-                    smoothness=REFINE_ALPHA, damping=REFINE_BETA, passes=REFINE_PASSES):
+                    smoothness=REFINE_ALPHA, damping=REFINE_BETA, passes=REFINE_PASSES,
+                    allowed=None, progress=None):
     """Move each vertex along its normal to the CT profile's edge at ``edge_level``.
 
     Repeats :func:`refine_pass` (vertices held back by the back-off get another chance once
@@ -70,6 +71,11 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
     max_shift, min_contrast, smoothness, damping, passes
         See the module constants (smoothness and damping are the refinement's own Laplacian and
         damping weights, not the deformation's alpha and beta).
+    allowed : callable, optional
+        points (n, 3) -> bool: where a target may lie (another bone's side of a joint may
+        not); targets elsewhere are dropped.
+    progress : callable, optional
+        progress(fraction, message) after each pass.
 
     Returns
     -------
@@ -83,16 +89,21 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
     frac = 0.0
     L = laplacian(len(vertices), faces)
     ops = ((L.T @ L).tocsr(), (sp.identity(len(vertices), format="csr") - L).tocsr())
-    for _ in range(passes):
+    for i in range(passes):
         v, _, frac, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
-                                     smoothness, damping, ops=ops, edge_level=edge_level)
+                                     smoothness, damping, ops=ops, edge_level=edge_level,
+                                     allowed=allowed)
+        if progress:
+            progress((i + 1) / (passes + VERIFY_ROUNDS), f"edge refinement {i + 1}/{passes}")
         if not ok:
             break
     # Passes check only for flips; the exact self-intersection test runs against the verified
     # input surface. Vertices it puts back get another pass (they would stand out as spikes
     # among refined neighbours), then the result is verified again; at most three rounds.
     clean = vertices
-    for _ in range(VERIFY_ROUNDS):
+    for r in range(VERIFY_ROUNDS):
+        if progress:
+            progress((passes + r) / (passes + VERIFY_ROUNDS), "edge refinement: verifying")
         checked, ok, _ = safe_update(clean, v, faces)
         if not ok:
             v = clean
@@ -102,7 +113,8 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
         if not reverted.any():
             break
         v, _, _, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
-                                  smoothness, damping, ops=ops, edge_level=edge_level)
+                                  smoothness, damping, ops=ops, edge_level=edge_level,
+                                  allowed=allowed)
         if not ok:
             v = clean
             break
@@ -114,7 +126,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
 
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
                 min_contrast=MIN_CONTRAST_HU, smoothness=REFINE_ALPHA, damping=REFINE_BETA, ops=None,
-                edge_level=0.6):
+                edge_level=0.6, allowed=None):
     """Return (new vertices, per-vertex shift along the normal, fraction refined, ok).
 
     The half-maximum points are soft targets of one regularised Laplacian step (as in the
@@ -154,6 +166,9 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
     # grazing profile) gets no target: the Laplacian term carries it with its neighbours.
     w[np.abs(shift - ring_mean(avg, shift, w)) > max(OUTLIER_MM, OUTLIER_VOXELS * spacing)] = 0.0
     targets = vertices + shift[:, None] * n
+    if allowed is not None:
+        # never toward another bone's side of a joint
+        w[~allowed(targets)] = 0.0
     A = (smoothness * LtL + sp.diags(w + damping)).tocsr()
     rhs = w[:, None] * targets + smoothness * (LtL @ vertices) + damping * vertices
     new = solve_spd(A, rhs, vertices)

@@ -1,13 +1,13 @@
-"""Stage 3: two-step thresholding with morphology (paper §2.1) and the constraint points.
+"""Stage 3b: the two-step threshold windows of one bone (paper §2.1) and its constraint points.
 
-W_H0 = [H0, theta_max] and W_HT = [HT, theta_max]. Bone k is the part of W_H0 that the rough
-segment points at. If W_H0 still joins bone k to a neighbour, we erode (6-connected, one voxel at
-a time, at most m times) until the component under the segment no longer spills out of the
-segment's region. The paper then dilates back m times and intersects with W_H0; plain dilation
-would re-grow across the bridge it just cut, so we let bone k and its neighbours grow back
-*competitively*: every W_H0 voxel within m voxels goes to the nearest eroded seed (ties to bone k).
-The same competition, seeded by the H0 result, decides which W_HT voxels belong to bone k, which
-keeps a cartilage-filled joint gap from becoming a bridge. Finally opening (l) and closing (n).
+W_H0 = [H0, theta_max] and W_HT = [HT, theta_max], each restricted to the voxels that bone k
+owns (:mod:`.ownership`: the segment as evidence, the neighbours as competitors) and joined by
+k's core (what the segment clearly covers is bone whatever its HU). The paper separates bone k
+from its neighbours by eroding W_H0 until they disconnect; here the competition of
+:mod:`.ownership` separates them (by the CT's valley where the erosion cannot), and
+:func:`erosions_to_separate` still measures whether the paper's erosion alone would have done
+it (reported per bone). Then the paper's closing (n) and opening (l); pores are plugged and
+cavities filled for the inside/outside decisions.
 """
 
 from __future__ import annotations
@@ -17,47 +17,37 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from ..errors import SeparationError, ThresholdError
-
 SIX = ndimage.generate_binary_structure(3, 1)
 
-# Closing of the rough segment (fills its missing chunks up to ~2x this), and its cap relative
-# to the segment's largest extent for small bones whose neighbours sit closer.
-REGION_CLOSE_MM = 10.0
-REGION_CLOSE_FRACTION = 0.15
-# Cap of segment_dilation relative to the segment's largest extent.
-REGION_DILATE_FRACTION = 0.1
 # Grid step (mm) on which the segment region is computed.
 REGION_COARSE_MM = 2.0
-# "Near the segment": the segment dilated by this much (mm).
-SEGMENT_NEAR_MM = 1.5
-# Erosion stops when the component under the segment keeps less than this fraction of itself.
-DISSOLVE_FRACTION = 0.2
-# Separated: at least this fraction of the component lies inside the segment's region.
-SEPARATED_FRACTION = 0.85
-# Below this fraction after the best erosion: SeparationError.
-MIN_SEPARATED_FRACTION = 0.5
-# A fragment is bone k when this fraction lies in the region and NEAR_FRACTION near the segment.
-FRAGMENT_IN_REGION_FRACTION = 0.5
-FRAGMENT_NEAR_FRACTION = 0.2
-# An H0 piece that no seed reached joins bone k when this fraction of it is near the segment.
-UNREACHED_NEAR_FRACTION = 0.5
-# Competitive regrowth of the H0 mask: at least this many mm.
-H0_REGROW_MM = 4.0
-# HT voxels are assigned within this distance (mm, and at least as many voxels) of the H0 bone.
-HT_GROW_MM = 3.0
+REGION_CLOSE_MM = 10.0
 # Ball radius (mm) of the closing that plugs pores before the cavities are filled.
 SOLIDIFY_RADIUS_MM = 1.5
+# Parts of W_HT deeper than this (mm) beyond W_H0 are out of the deformation's reach: they join
+# the Poisson input (low-density bone the segment covers: thin processes, vertebral bodies).
+REACH_MM = 1.0
+# Margin (mm) of a bone's working box around what it owns.
+BOX_MARGIN_MM = 4.0
 
 
 @dataclass
-class ThresholdResult:
-    w_h0: np.ndarray        # bool, bone k at [H0, theta_max] after morphology
-    w_ht: np.ndarray        # bool, bone k at [HT, theta_max] after morphology
-    occupancy: np.ndarray   # bool, filled bone k (inside / outside decisions)
-    roi: np.ndarray         # bool, region the rough segment points at
+class BoneMasks:
+    """The threshold masks of one bone, on its box ``box`` (slices of the working grid).
+
+    Arrays are (z, y, x) bool on the box; ``origin`` is the box corner in grid millimetres
+    (x, y, z). ``w_h0``/``w_ht``: the two windows of bone k after morphology; ``solid_h0``:
+    W_H0 with pores plugged, cavities filled and the out-of-reach part of W_HT joined (the
+    visible-point candidates come from its boundary); ``occupancy``: the filled bone at HT.
+    """
+
+    box: tuple
+    origin: np.ndarray
+    w_h0: np.ndarray
+    w_ht: np.ndarray
+    solid_h0: np.ndarray
+    occupancy: np.ndarray
     info: dict = field(default_factory=dict)
-    solid_h0: np.ndarray = None  # bool, w_h0 with pores plugged and cavities filled
 
 
 def _block_any(mask: np.ndarray, f: int) -> np.ndarray:
@@ -103,204 +93,91 @@ def segment_region(segment: np.ndarray, spacing: float, close_mm: float = REGION
     return region[np.ix_(*idx)]
 
 
-def _components(mask: np.ndarray, roi: np.ndarray):
-    lab, n = ndimage.label(mask, structure=SIX)
-    size = np.bincount(lab.ravel(), minlength=n + 1)
-    inroi = np.bincount(lab[roi], minlength=n + 1)
-    size[0] = 0
-    inroi[0] = 0
-    return lab, n, size, inroi
 
 
-def _competitive_assign(candidates: np.ndarray, bone_seed: np.ndarray, other_seed: np.ndarray,
-                        max_steps: float) -> np.ndarray:
-    """Voxels of ``candidates`` that bone_seed reaches before other_seed, growing both one
-    6-connected voxel per step through the candidates (ties go to bone k), at most max_steps.
-
-    A geodesic competition: cheaper than two distance maps, and a neighbour cannot claim voxels
-    through a gap that only a straight line would cross."""
-    own = bone_seed.copy()
-    other = other_seed & ~own
-    steps = int(max_steps) if np.isfinite(max_steps) else 10 ** 6
-    for _ in range(steps):
-        grow = ndimage.binary_dilation(own, structure=SIX) & candidates & ~own & ~other
-        grow_other = ndimage.binary_dilation(other, structure=SIX) & candidates & ~own & ~other & ~grow
-        if not grow.any() and not grow_other.any():
-            break
-        own |= grow
-        other |= grow_other
-    return own & candidates
-
-
-def _keep_connected_to(mask: np.ndarray, anchor: np.ndarray) -> np.ndarray:
-    lab, n = ndimage.label(mask, structure=SIX)
-    if n <= 1:
-        return mask
-    keep = np.zeros(n + 1, dtype=bool)
-    keep[np.unique(lab[anchor & mask])] = True
-    keep[0] = False
-    return keep[lab]
-
-
-def two_step_threshold(ct_f: np.ndarray, segment: np.ndarray, spacing: float, *,
-                       h0: float = 300.0, ht: float = 150.0, theta_max: float = 2500.0,
-                       max_erosions: int = 3, opening: int = 1, closing: int = 2,
-                       segment_dilation: float = 3.0, progress=None) -> ThresholdResult:
-    """Bone k's masks at [H0, theta_max] and [HT, theta_max], separated from its neighbours.
+def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.ndarray,
+               k: int, spacing: float, *, h0: float, theta_max: float, coarseness: float,
+               opening: int, closing: int) -> BoneMasks:
+    """W_H0, W_HT and their solid versions for bone k (label index ``k``).
 
     Parameters
     ----------
-    ct_f : (z, y, x) float array
-        Filtered CT in HU on the isotropic working grid.
-    segment : (z, y, x) bool array
-        The rough segment on the same grid.
+    ct : (z, y, x) float array
+        The filtered CT (HU) on the working grid.
+    owner, cores, labels : (z, y, x) uint arrays
+        From :func:`.ownership.compute_ownership` and the label index map.
+    k : int
+        Label index of the bone.
     spacing : float
         Voxel size d in mm.
-    h0, ht, theta_max : float
-        Threshold windows W_H0 = [h0, theta_max] and W_HT = [ht, theta_max] in HU.
-    max_erosions : int
-        m, the most erosions tried to separate bone k.
+    h0, theta_max : float
+        The initial window [H0, theta_max] (HU).
+    coarseness : float
+        The segmentation's coarseness (mm): inside k's label, gaps of the cortex up to about
+        twice this are closed (partial volume breaks thin cortex on thick slices).
     opening, closing : int
-        l and n, iterations of the final opening and closing.
-    segment_dilation : float
-        How far (mm) bone k may extend beyond the segment's closed region.
-    progress : callable, optional
-        ``progress(fraction, message)``.
-
-    Returns
-    -------
-    ThresholdResult
-        Boolean (z, y, x) masks on the working grid and an ``info`` dict for the report.
+        l and n of the paper.
     """
-    tmax = theta_max
-    # Closing fills missing chunks of the rough segment up to ~2 x 10 mm, less for small bones
-    # whose neighbours sit closer than that (0.15 x the segment's largest extent).
-    nzs = np.nonzero(segment.any(axis=(1, 2)))[0], np.nonzero(segment.any(axis=(0, 2)))[0], \
-        np.nonzero(segment.any(axis=(0, 1)))[0]
-    extent = max((a.max() - a.min() + 1) for a in nzs) * spacing
-    roi = segment_region(segment, spacing,
-                         close_mm=min(REGION_CLOSE_MM, REGION_CLOSE_FRACTION * extent),
-                         dilate_mm=min(segment_dilation, REGION_DILATE_FRACTION * extent))
-    w0 = (ct_f >= h0) & (ct_f <= tmax)
-    wt = (ct_f >= ht) & (ct_f <= tmax)
-    seg_vals = ct_f[segment]
-    if not wt[segment].any():
-        raise ThresholdError(
-            f"No voxel of the segment region lies in [HT, theta_max] = [{ht:g}, {tmax:g}] HU "
-            f"(segment HU range {seg_vals.min():.0f} to {seg_vals.max():.0f}): lower HT or check "
-            "that the volume is a CT in Hounsfield units.")
-    if not w0[segment].any():
-        raise ThresholdError(
-            f"No voxel of the segment region lies in [H0, theta_max] = [{h0:g}, {tmax:g}] HU "
-            f"(segment HU up to {seg_vals.max():.0f}): lower H0 (it must stay above HT).")
-    if progress:
-        progress(0.1, "thresholds")
-
-    # Near the segment itself (no closing): a neighbour lies mostly outside this, while bone k's
-    # parts that the rough segment missed still lie inside the closed region ``roi``.
-    seg_near = ndimage.binary_dilation(segment, structure=SIX,
-                                       iterations=max(1, int(round(SEGMENT_NEAR_MM / spacing))))
-    eroded = w0
-    stats = []
-    levels = []
-    chosen = None
-    for e in range(0, max_erosions + 1):
-        if e > 0:
-            eroded = ndimage.binary_erosion(eroded, structure=SIX)
-        lab, n, size, inroi = _components(eroded, roi)
-        near = np.bincount(lab[seg_near], minlength=n + 1)
-        near[0] = 0
-        if n == 0 or near.max() == 0:
-            break
-        main = int(np.argmax(near))
-        frac = inroi[main] / size[main]
-        # Too much erosion dissolves thin or low-density bone (3 mm CT, vertebrae): stop before
-        # the component under the segment loses most of itself.
-        if levels and size[main] < DISSOLVE_FRACTION * levels[0][2][levels[0][5]]:
-            stats.append({"erosions": e, "main_voxels": int(size[main]), "stopped": "bone dissolves"})
-            break
-        stats.append({"erosions": e, "components": int(n), "main_voxels": int(size[main]),
-                      "main_fraction_in_region": float(frac)})
-        levels.append((lab, n, size, inroi, near, main, frac))
-        if progress:
-            progress(0.1 + 0.3 * (e + 1) / (max_erosions + 1), f"erosion {e}")
-        # Spilling out of the segment's region by less than 15 % is bone k's own surface near a
-        # rough segment border, not a neighbour.
-        if frac >= SEPARATED_FRACTION:
-            chosen = len(levels) - 1
-            break
-    if not levels:
-        raise ThresholdError("Nothing of the bone under the segment is in [H0, theta_max]: lower H0.")
-    if chosen is None:
-        # Not separated by erosion alone: take the level that separated best. The competition
-        # below still stops at the neighbours' seeds outside the segment's region.
-        chosen = int(np.argmax([lv[6] for lv in levels]))
-    lab, n, size, inroi, near, main, frac = levels[chosen]
-    separated_at = chosen
-    if frac < MIN_SEPARATED_FRACTION:
-        raise SeparationError(
-            f"After {len(levels) - 1} erosions the bone under the segment is still joined to a "
-            f"neighbour ({100 * (1 - frac):.0f} % of it lies outside the segment's region). Try: raise H0 "
-            f"(now {h0:g} HU), raise max_erosions (now {max_erosions}), use a finer resample "
-            "spacing, or draw the rough segment over more of the bone.")
-    # Bone k: every piece mostly inside the segment's region (thin bone breaks into fragments).
-    is_bone = ((inroi >= FRAGMENT_IN_REGION_FRACTION * size) & (near >= FRAGMENT_NEAR_FRACTION * size)
-               & (size > 0))
-    is_bone[main] = True
-    is_bone[0] = False
-    bone_seed = is_bone[lab]
-    # Neighbours: the other pieces, and every H0 voxel outside the segment's region.
-    other_seed = ((lab > 0) & ~bone_seed) | (w0 & ~roi)
-    if progress:
-        progress(0.5, "competitive dilation")
-    w_h0 = _competitive_assign(w0, bone_seed, other_seed, max(separated_at + 1, H0_REGROW_MM / spacing))
-    w_h0 = _keep_connected_to(w_h0, bone_seed)
-    # H0 pieces that no seed reached (isolated fragments) belong to bone k when they lie in its
-    # region and touch the segment.
-    lab_u, n_u = ndimage.label(w0 & ~w_h0 & roi, structure=SIX)
-    if n_u:
-        sz = np.bincount(lab_u.ravel(), minlength=n_u + 1)
-        nr = np.bincount(lab_u[seg_near], minlength=n_u + 1)
-        touch_other = np.zeros(n_u + 1, dtype=bool)
-        touch_other[np.unique(lab_u[ndimage.binary_dilation(other_seed, structure=SIX) & (lab_u > 0)])] = True
-        add = (nr >= UNREACHED_NEAR_FRACTION * sz) & ~touch_other
-        add[0] = False
-        w_h0 |= add[lab_u]
-    # The neighbours' H0 voxels: the rest of W_H0 in components that hold a neighbour seed.
-    rest = w0 & ~w_h0
-    lab_rest, n_rest = ndimage.label(rest, structure=SIX)
-    has_seed = np.zeros(n_rest + 1, dtype=bool)
-    has_seed[np.unique(lab_rest[other_seed & rest])] = True
-    has_seed[0] = False
-    neighbours_h0 = has_seed[lab_rest]
-    # HT voxels of bone k: reached from bone k's H0 voxels before a neighbour's, within 3 mm.
-    grow_vox = max(HT_GROW_MM, HT_GROW_MM / spacing)
-    w_ht = _competitive_assign(wt, w_h0, neighbours_h0, grow_vox) | w_h0
-    w_ht = _keep_connected_to(w_ht, w_h0)
-    if progress:
-        progress(0.75, "opening / closing")
-    w_h0 = _open_close(w_h0, opening, closing)
-    w_ht = _open_close(w_ht, opening, closing) | w_h0
-    if not w_h0.any():
-        raise ThresholdError(
-            "Opening removed the whole bone at H0: lower the opening iterations (l) or H0.")
-    # Solid versions: marrow and pores connect to the outside through the porous trabecular ends,
-    # so a plain fill leaves them open and far views see the inner cortical wall through the
-    # pores. A ~1.5 mm closing plugs the pores, then the fill makes the bone solid; only its
-    # outer boundary feeds the visible-point extraction and the inside/outside decisions.
+    owned_all = owner == k
+    core_all = cores == k
+    lab_all = labels == k
+    box = bbox_slices(owned_all | core_all | lab_all,
+                      int(np.ceil(BOX_MARGIN_MM / spacing)) + max(opening, closing) + 2)
+    owned, core, lab_k = owned_all[box], core_all[box], lab_all[box]
+    ctb = ct[box]
+    strong = (ctb >= h0) & (ctb <= theta_max)
+    r = max(1, int(round(coarseness / spacing)))
+    closed = ndimage.binary_closing(np.pad(owned | core, r + 1), structure=SIX,
+                                    iterations=r)[r + 1:-r - 1, r + 1:-r - 1, r + 1:-r - 1]
+    owned = owned | (closed & lab_k & (owner[box] == 0))
+    w_h0 = _open_close((owned & strong) | core, opening, closing)
+    w_ht = _open_close(owned | core, opening, closing) | w_h0
     solid_h0 = solidify(w_h0, spacing)
     occupancy = solidify(w_ht | solid_h0, spacing)
-    info = {
-        "erosions_used": int(separated_at),
-        "erosion_steps": stats,
-        "voxels_h0": int(w_h0.sum()),
-        "voxels_ht": int(w_ht.sum()),
-        "neighbour_voxels_h0": int(neighbours_h0.sum()),
-    }
-    if progress:
-        progress(1.0, "thresholding done")
-    return ThresholdResult(w_h0=w_h0, w_ht=w_ht, occupancy=occupancy, roi=roi, info=info,
-                           solid_h0=solid_h0)
+    far = ndimage.binary_erosion(occupancy, structure=SIX,
+                                 iterations=max(1, int(round(REACH_MM / spacing))))
+    solid_h0 |= far
+    origin = np.array([s.start for s in box][::-1], dtype=np.float64) * spacing
+    info = {"voxels_h0": int(w_h0.sum()), "voxels_ht": int(w_ht.sum()),
+            "voxels_core": int(core.sum()), "voxels_out_of_reach": int((far & ~w_h0).sum())}
+    return BoneMasks(box=box, origin=origin, w_h0=w_h0, w_ht=w_ht, solid_h0=solid_h0,
+                     occupancy=occupancy, info=info)
+
+
+def erosions_to_separate(ct: np.ndarray, owner: np.ndarray, k: int, spacing: float, *,
+                         h0: float, theta_max: float, step_voxels: int,
+                         max_erosions: int) -> "int | None":
+    """The paper's separation test: how many erosions (each ``step_voxels`` working voxels,
+    i.e. one voxel of the CT) of W_H0 disconnect bone k's owned H0 voxels from every other
+    bone's; 0 when they are apart already, None when ``max_erosions`` do not separate them."""
+    mine = owner == k
+    if not mine.any():
+        return None
+    box = bbox_slices(mine, 2 * step_voxels * max_erosions + 2)
+    ctb = ct[box]
+    w = (ctb >= h0) & (ctb <= theta_max) & (owner[box] > 0)
+    mine_b, others = mine[box] & w, w & ~mine[box]
+    if not others.any():
+        return 0
+    for e in range(max_erosions + 1):
+        if e:
+            w = ndimage.binary_erosion(w, structure=SIX, iterations=step_voxels)
+        lab, _ = ndimage.label(w, structure=SIX)
+        a = np.unique(lab[mine_b & w])
+        b = np.unique(lab[others & w])
+        a, b = a[a > 0], b[b > 0]
+        if len(a) == 0:
+            return None
+        if not np.intersect1d(a, b).size:
+            return e
+    return None
+
+
+def bbox_slices(mask: np.ndarray, pad: int) -> tuple:
+    """Slices of ``mask``'s bounding box grown by ``pad`` voxels (clipped to the array)."""
+    idx = [np.nonzero(mask.any(axis=tuple(a for a in range(3) if a != ax)))[0] for ax in range(3)]
+    return tuple(slice(max(0, int(i.min()) - pad), min(n, int(i.max()) + pad + 1))
+                 for i, n in zip(idx, mask.shape))
 
 
 def _open_close(mask: np.ndarray, opening: int, closing: int) -> np.ndarray:

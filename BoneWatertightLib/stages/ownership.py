@@ -1,0 +1,363 @@
+"""Stage 3a: which voxels belong to which bone - the segment as evidence, neighbours compete.
+
+Inputs on the working grid: the filtered CT and the label index map of the segmentation (every
+label is a bone: the targets and their neighbours). Axis order (z, y, x) throughout.
+
+1. **Bone evidence F**: voxels in [HT, theta_max] connected to a voxel in [H0, theta_max]
+   (hysteresis), voxels inside a label down to a lower level ``t_low`` (partial volume lowers
+   thin cortex and processes, and the segment already says bone is there), and the **cores**:
+   what a segment clearly covers (deeper than ``r_core`` inside it) is bone whatever its HU -
+   the trabecular body of a vertebra on 3 mm CT lies far below H0.
+2. **Markers**: each label's voxels in [H0, theta_max] and its core, except in the **joint
+   zone** (its voxels within ``r_contact`` of another label), where labels are not trusted (AI
+   masks are often wrong by a few mm at a joint); and "other bone": H0 voxels outside every
+   label's region (an unlabelled neighbour), one marker per connected piece.
+3. **Flooding** (:func:`flood_from_markers`) inside F in the order of the CT's valley-ness
+   V = closing(CT) - CT (a black top-hat, quantised): V is high in thin dark gaps between
+   bright cortices - joint spaces - and about zero in trabecular bone and soft tissue. So
+   where two bones meet, the split follows the joint's low-HU valley; where no valley shows,
+   it falls midway between the markers (breadth-first on the plateau) - for touching labels,
+   their own boundary.
+4. A piece of unlabelled bone whose basin meets bone k without a valley between them is k's
+   own bone that the segment missed (a bitten-off end of a rough segment): merged into k. With
+   a valley between them it stays a neighbour (this is where a separation can fail: it is
+   reported per pair with the fraction of the contact where a joint space was seen).
+5. Bone k owns its basin's part within its region (segment closed + dilated by the band, see
+   :func:`threshold.segment_region`) connected to its markers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from .threshold import SIX, bbox_slices, segment_region
+
+# A core is deeper than max(CORE_MIN_MM, coarseness) inside its label, but at most this
+# fraction of the label's deepest point (thin bones keep a core).
+CORE_MIN_MM = 1.5
+CORE_MAX_DEPTH_FRACTION = 0.4
+# Joint zone: label voxels within max(CONTACT_MIN_MM, coarseness) of another label.
+CONTACT_MIN_MM = 3.0
+# Inside a label, bone evidence reaches down to soft + LABEL_LEVEL_FRACTION * (HT - soft).
+LABEL_LEVEL_FRACTION = 0.5
+# Valley-ness: black top-hat with a cube of half-width VALLEY_GAP_MM / 2 + one voxel,
+# quantised in steps of max(VALLEY_QUANTUM_MIN_HU, VALLEY_QUANTUM_FRACTION * bone contrast).
+VALLEY_GAP_MM = 3.0
+VALLEY_QUANTUM_MIN_HU = 40.0
+VALLEY_QUANTUM_FRACTION = 0.1
+# A valley "seen" across an interface is at least this many quanta deep.
+SEEN_VALLEY_QUANTA = 2
+# Unlabelled pieces below this volume (mm^3) are noise, not neighbours.
+MIN_OTHER_PIECE_MM3 = 1.0
+# An unlabelled piece is merged into a bone when less than this fraction of their contact
+# shows a valley and the contact is at least MERGE_MIN_AREA_MM2.
+MERGE_MAX_VALLEY_FRACTION = 0.3
+MERGE_MIN_AREA_MM2 = 2.0
+# ... and when it lies within band + MERGE_REACH_COARSENESS x coarseness + MERGE_REACH_MM of the
+# label (the plausibility gate's excursion bound).
+MERGE_REACH_COARSENESS = 2.0
+MERGE_REACH_MM = 2.0
+# A basin fragment not connected to its bone's markers is kept when at least this fraction of
+# it lies inside the label (thin bone broken up by partial volume).
+FRAGMENT_IN_LABEL_FRACTION = 0.5
+# Region of a label: closing radius (capped at a fraction of its size); it is dilated by the
+# band (labelled neighbours compete by their labels, so a small bone needs no smaller band).
+REGION_CLOSE_MM = 10.0
+REGION_CLOSE_FRACTION = 0.15
+
+
+@dataclass
+class Ownership:
+    """Result of :func:`compute_ownership`; arrays are (z, y, x) on the working grid.
+
+    ``owner``: label index owning each voxel (0 none; ``other`` = n + 1 unlabelled bone).
+    ``cores``: label index of the core (0 none). ``regions``: label index -> (slices, bool
+    region within those slices).
+    ``foreground``: F. ``contacts``: list of per-pair contact records (see module doc).
+    """
+
+    owner: np.ndarray
+    cores: np.ndarray
+    regions: dict
+    foreground: np.ndarray
+    other: int
+    contacts: list = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+
+
+def valley_map(ct: np.ndarray, spacing: float, radius_mm: float) -> np.ndarray:
+    """Black top-hat closing(ct) - ct with a cube of half-width ``radius_mm`` (separable)."""
+    k = 2 * max(1, int(round(radius_mm / spacing))) + 1
+    closed = ndimage.minimum_filter(ndimage.maximum_filter(ct, size=k, mode="nearest"),
+                                    size=k, mode="nearest")
+    return closed - ct
+
+
+def flood_from_markers(markers: np.ndarray, levels: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Marker-controlled flooding in level order, breadth-first within a level.
+
+    Parameters
+    ----------
+    markers : (z, y, x) uint array
+        Seeds (0 = unlabelled).
+    levels : (z, y, x) int array
+        The level at which a voxel can be claimed.
+    mask : (z, y, x) bool array
+        Voxels that may be claimed.
+
+    Returns
+    -------
+    (z, y, x) int32 array
+        Each voxel of ``mask`` reached from a seed gets the label of the flood that reaches it
+        first; floods expand over every voxel of level <= L, one 6-connected layer per step and
+        all labels at once, before any voxel of level L + 1 is claimed - so on a plateau the
+        split is the geodesic midpoint between the seeds. Voxels no flood reaches stay 0.
+    """
+    shape = markers.shape
+    pad = ((1, 1), (1, 1), (1, 1))
+    lab = np.pad(markers.astype(np.int32), pad).ravel()
+    ok = np.pad(mask, pad).ravel()
+    lev = np.pad(levels.astype(np.int32), pad, constant_values=np.iinfo(np.int32).max).ravel()
+    sy, sx = shape[1] + 2, shape[2] + 2
+    offsets = np.array([1, -1, sx, -sx, sx * sy, -sx * sy], dtype=np.int64)
+    buckets: dict = {}
+
+    def expand(idx, lbl, level):
+        nb = (idx[:, None] + offsets[None, :]).ravel()
+        nl = np.repeat(lbl, 6)
+        free = ok[nb] & (lab[nb] == 0)
+        nb, nl = nb[free], nl[free]
+        e = lev[nb]
+        now = e <= level
+        if not now.all():
+            nbl, nll, el = nb[~now], nl[~now], e[~now]
+            order = np.argsort(el, kind="stable")
+            nbl, nll, el = nbl[order], nll[order], el[order]
+            cut = np.flatnonzero(np.diff(el)) + 1
+            for a, b in zip(np.r_[0, cut], np.r_[cut, len(el)]):
+                buckets.setdefault(int(el[a]), []).append((nbl[a:b], nll[a:b]))
+        return nb[now], nl[now]
+
+    seeds = np.flatnonzero(lab)
+    expand(seeds, lab[seeds], -1)
+    while buckets:
+        level = min(buckets)
+        claims = buckets.pop(level)
+        idx = np.concatenate([c[0] for c in claims])
+        lbl = np.concatenate([c[1] for c in claims])
+        while len(idx):
+            free = lab[idx] == 0
+            idx, lbl = idx[free], lbl[free]
+            idx, first = np.unique(idx, return_index=True)
+            lbl = lbl[first]
+            lab[idx] = lbl
+            idx, lbl = expand(idx, lbl, level)
+    return lab.reshape(shape[0] + 2, sy, sx)[1:-1, 1:-1, 1:-1]
+
+
+def _interfaces(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, spacing: float, quantum: float,
+                radius_mm: float) -> dict:
+    """(label a, label b) with a < b -> (contact voxel faces, of which with a valley seen).
+
+    A face between two F voxels of different basins is "seen" when the CT along the axis that
+    crosses it dips by at least SEEN_VALLEY_QUANTA quanta (1-D black top-hat): a joint gap is a
+    minimum of the CT between two cortices; a bone cut across its marrow is not."""
+    k = 2 * max(1, int(round(radius_mm / spacing))) + 1
+    out: dict = {}
+    for axis in range(3):
+        a = [slice(None)] * 3
+        b = [slice(None)] * 3
+        a[axis] = slice(0, -1)
+        b[axis] = slice(1, None)
+        a, b = tuple(a), tuple(b)
+        wa, wb = ws[a], ws[b]
+        sel = (wa != wb) & (wa > 0) & (wb > 0) & fg[a] & fg[b]
+        if not sel.any():
+            continue
+        top = ndimage.minimum_filter1d(ndimage.maximum_filter1d(ct, k, axis=axis, mode="nearest"),
+                                       k, axis=axis, mode="nearest") - ct
+        seen = np.maximum(top[a][sel], top[b][sel]) >= SEEN_VALLEY_QUANTA * quantum
+        la = np.minimum(wa[sel], wb[sel]).astype(np.int64)
+        lb = np.maximum(wa[sel], wb[sel]).astype(np.int64)
+        key = la * 100000 + lb
+        for kk in np.unique(key):
+            m = key == kk
+            pair = (int(kk // 100000), int(kk % 100000))
+            tot, vis = out.get(pair, (0, 0))
+            out[pair] = (tot + int(m.sum()), vis + int(seen[m].sum()))
+    return out
+
+
+def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float, *,
+                      h0: float, ht: float, theta_max: float, soft: float, contrast: float,
+                      coarseness: float, band_mm: float, progress=None) -> Ownership:
+    """Assign the bone voxels of the working grid to the labels (see the module doc).
+
+    Parameters
+    ----------
+    ct : (z, y, x) float32 array
+        The filtered CT (HU).
+    labels : (z, y, x) uint array
+        Label index 1..n of each voxel (0 background).
+    n : int
+        Number of labels.
+    spacing : float
+        Voxel size in mm.
+    h0, ht, theta_max : float
+        The two threshold windows (HU).
+    soft, contrast : float
+        Soft-tissue level and bone contrast (cortex - soft tissue), HU.
+    coarseness : float
+        How coarse the segmentation is (mm): its own voxel size or the CT's slice spacing.
+    band_mm : float
+        How far a bone may reach beyond its label (the region's dilation).
+
+    Returns
+    -------
+    Ownership
+    """
+    shape = ct.shape
+    r_core = max(CORE_MIN_MM, coarseness)
+    r_contact = max(CONTACT_MIN_MM, coarseness)
+    labelled = labels > 0
+    cores = np.zeros(shape, np.uint16)
+    contact = np.zeros(shape, bool)
+    regions = {}
+    union = np.zeros(shape, bool)
+    core_depth = {}
+    present = [i for i in range(1, n + 1)]
+    for step, i in enumerate(present):
+        m = labels == i
+        if not m.any():
+            continue
+        sl = bbox_slices(m, int(np.ceil(max(r_contact, band_mm) / spacing)) + 2)
+        sub = m[sl]
+        depth = ndimage.distance_transform_edt(np.pad(sub, 1))[1:-1, 1:-1, 1:-1] * spacing
+        r = min(r_core, CORE_MAX_DEPTH_FRACTION * float(depth.max()))
+        core = depth > r if (depth > r).any() else depth >= depth.max()
+        cores[sl][core] = i
+        core_depth[i] = r
+        ext = [np.nonzero(sub.any(axis=tuple(a for a in range(3) if a != ax)))[0] for ax in range(3)]
+        extent = max(int(e.max() - e.min() + 1) for e in ext) * spacing
+        reg = segment_region(sub, spacing, close_mm=min(REGION_CLOSE_MM, REGION_CLOSE_FRACTION * extent),
+                             dilate_mm=band_mm)
+        regions[i] = (sl, reg)
+        union[sl] |= reg
+        others = labelled[sl] & ~sub
+        if others.any():
+            d_other = ndimage.distance_transform_edt(~others) * spacing
+            contact[sl] |= sub & (d_other < r_contact)
+        if progress:
+            progress(0.4 * (step + 1) / len(present), "segment regions")
+    t_low = soft + LABEL_LEVEL_FRACTION * (ht - soft)
+    in_window = ((ct >= ht) | (labelled & (ct >= t_low))) & (ct <= theta_max)
+    strong = (ct >= h0) & (ct <= theta_max)
+    lab, nl = ndimage.label(in_window, structure=SIX)
+    keep = np.zeros(nl + 1, bool)
+    keep[np.unique(lab[(strong | (cores > 0)) & in_window])] = True
+    keep[0] = False
+    fg = keep[lab] | (cores > 0) | (labelled & in_window)
+    del lab
+    if progress:
+        progress(0.5, "bone evidence")
+    other = n + 1
+    markers = np.where(fg & strong & labelled & ~contact, labels, 0).astype(np.uint16)
+    core_marker = (cores > 0) & ~contact
+    markers[core_marker] = cores[core_marker]
+    om = fg & strong & ~union & (markers == 0)
+    olab, no = ndimage.label(om, structure=SIX)
+    n_pieces = 0
+    if no:
+        size = np.bincount(olab.ravel(), minlength=no + 1)
+        ok = size * spacing ** 3 >= MIN_OTHER_PIECE_MM3
+        ok[0] = False
+        n_pieces = int(ok.sum())
+        remap = np.zeros(no + 1, np.uint32)
+        remap[ok] = np.arange(n_pieces) + other
+        markers[om] = remap[olab[om]].astype(np.uint16)
+    del olab, om
+    quantum = max(VALLEY_QUANTUM_MIN_HU, VALLEY_QUANTUM_FRACTION * contrast)
+    radius = 0.5 * VALLEY_GAP_MM + spacing
+    levels = np.floor(np.clip(valley_map(ct, spacing, radius), 0, None) / quantum).astype(np.int32)
+    if progress:
+        progress(0.6, "flooding from the markers")
+    ws = flood_from_markers(markers, levels, fg)
+    del levels
+    if progress:
+        progress(0.8, "contacts between bones")
+    faces = _interfaces(ws, fg, ct, spacing, quantum, radius)
+    # Unlabelled pieces meeting a bone without a valley: the bone's own, missed by the segment.
+    area = spacing ** 2
+    merged = []
+    for piece in range(other, other + n_pieces):
+        best = None
+        for (a, b), (tot, vis) in faces.items():
+            if b != piece or a > n:
+                continue
+            if best is None or tot - vis > best[1] - best[2]:
+                best = (a, tot, vis)
+        if best is None:
+            continue
+        a, tot, vis = best
+        if vis / tot >= MERGE_MAX_VALLEY_FRACTION or tot * area < MERGE_MIN_AREA_MM2:
+            continue
+        # Only what the segment plausibly missed: the piece lies within reach of the label
+        # (a whole neighbouring bone without a visible joint space does not).
+        basin = ws == piece
+        box = bbox_slices(basin | (labels == a), 2)
+        reach = ndimage.distance_transform_edt(labels[box] != a) * spacing
+        if reach[basin[box]].max() <= band_mm + MERGE_REACH_COARSENESS * coarseness + MERGE_REACH_MM:
+            merged.append((piece, a, vis / tot, tot * area))
+    grow: dict = {}
+    for piece, a, _, _ in merged:
+        grow.setdefault(a, []).append(piece)
+    owner = np.zeros(shape, np.uint16)
+    for i, (sl, reg) in regions.items():
+        own = ws == i
+        if i in grow:
+            own |= np.isin(ws, grow[i])
+            own[sl] &= reg | np.isin(ws[sl], grow[i])
+            outside = np.ones(shape, bool)
+            outside[sl] = False
+            own &= ~outside | np.isin(ws, grow[i])
+        else:
+            inside = np.zeros(shape, bool)
+            inside[sl] = reg
+            own &= inside
+        lab_i, n_i = ndimage.label(own, structure=SIX)
+        if n_i > 1:
+            ok = np.zeros(n_i + 1, bool)
+            ok[np.unique(lab_i[(markers == i) & own])] = True
+            size = np.bincount(lab_i.ravel(), minlength=n_i + 1)
+            inlab = np.bincount(lab_i[labels == i], minlength=n_i + 1)
+            ok |= inlab >= FRAGMENT_IN_LABEL_FRACTION * size
+            ok[0] = False
+            own = ok[lab_i]
+        owner[own] = i
+    merged_ids = {p for p, _, _, _ in merged}
+    owner[(ws >= other) & ~np.isin(ws, list(merged_ids)) & (owner == 0)] = other
+    # Per-pair contacts, other-bone pieces pooled.
+    pooled: dict = {}
+    for (a, b), (tot, vis) in faces.items():
+        a2 = a if a <= n else other
+        b2 = b if b <= n else other
+        if a2 == b2 or (b in merged_ids) or (a in merged_ids):
+            continue
+        key = (min(a2, b2), max(a2, b2))
+        t0, v0 = pooled.get(key, (0, 0))
+        pooled[key] = (t0 + tot, v0 + vis)
+    contacts = [{"a": a, "b": b, "contact_area_mm2": tot * area,
+                 "valley_seen_fraction": vis / tot if tot else 0.0}
+                for (a, b), (tot, vis) in sorted(pooled.items())]
+    info = {"core_depth_mm": {int(k): float(v) for k, v in core_depth.items()},
+            "contact_zone_mm": r_contact, "valley_quantum_hu": quantum, "label_level_hu": t_low,
+            "foreground_voxels": int(fg.sum()), "unlabelled_pieces": n_pieces,
+            "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
+                                   "contact_mm2": round(s, 1)} for p, a, f, s in merged]}
+    if progress:
+        progress(1.0, "ownership done")
+    return Ownership(owner=owner, cores=cores, regions=regions, foreground=fg, other=other,
+                     contacts=contacts, info=info)
