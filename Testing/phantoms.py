@@ -17,7 +17,17 @@ Coordinates: the phantom is built in a "local" frame (mm, z = superior along the
 that is aligned with the image grid. Physical LPS = origin + D @ (local - local0), where
 local0 is the local position of voxel (0, 0, 0) and D the image direction matrix. So the
 oblique case has the same voxel array as the axis-aligned one, and the same object
-rotated by D in physical space.
+rotated by D in physical space. Every image of a phantom (CT, rough mask, label maps) has
+the direction D and a grid aligned with the local axes; arrays are (z, y, x).
+
+Both bones as label maps (1 = femur, 2 = cup, 0 = background): :func:`labels_rough` (the
+rough mask plus a rough cup on the mask's grid) and :func:`labels_ai` (majority vote of the
+truth on a coarse 1.5-3 mm grid, optionally wrong at the joint), or :func:`make_labels`.
+
+Random streams: ``seed`` seeds the main stream (HU fields, pores, foramina, CT noise, rough
+mask, in this order); options added later draw from streams seeded by (seed, 1) (geometry
+variation, cortical holes), (seed, 2) (the rough cup label) and (seed, 3) (the AI grid's
+phase), so the old cases are reproduced bit for bit.
 """
 
 from __future__ import annotations
@@ -54,6 +64,21 @@ _BASE = dict(
     mask_factor=2.0,      # the rough segment's grid is this many times coarser
     truth_grid=None,      # marching-cubes step (mm) of the truth mesh; None = auto
     cartilage_hu=150.0,
+    # Options added later; their defaults reproduce the old cases bit for bit.
+    # True: the two truths are exactly `gap` apart over the whole joint. False (the old
+    # cases): the cup's smooth clamp widens most of the joint by 0.075 cup_t (e.g. `hard`:
+    # 1.2 mm at the pole, 1.425 mm elsewhere; info["gap_min_mm"] is the smallest distance).
+    gap_exact=False,
+    vary_geometry=False,  # True: the seed also perturbs part sizes/positions (about +-5 %)
+    low_density_end=None,  # None | "proximal" | "distal" | "both": osteoporotic end(s)
+    low_trab_hu=160.0,    # trabecular HU there (mean; +- low_trab_var from the same field)
+    low_trab_var=40.0,
+    low_subcortical_hu=0.0,  # extra HU just under the cortex there (80 elsewhere)
+    low_cortex_hu=None,   # cortex HU there (None = the normal 1400 +- 180)
+    low_cortex_var=30.0,
+    cortex_holes=0,       # number of windows in the cortex (filled with cortex_hole_hu)
+    cortex_hole_mm=2.0,   # their radius (mm)
+    cortex_hole_hu=220.0,
 )
 
 CASES: dict[str, dict] = {
@@ -67,6 +92,36 @@ CASES: dict[str, dict] = {
     "lesion": dict(scale=0.6, pixel=0.8, slice_spacing=1.0, gap=3.0, noise=20.0, lesion=True),
     "oblique": dict(scale=0.6, pixel=0.8, slice_spacing=1.0, gap=3.0, noise=15.0,
                     direction_angles_deg=(17.0, -11.0, 23.0)),
+    # Joint cases (issue 10): femur + cup at `easy` size across slice thickness and joint gap,
+    # the gap exact over the whole joint (gap_exact); name = joint_s<slice x10>_g<gap x10>.
+    "joint_s10_g10": dict(scale=0.6, pixel=0.8, slice_spacing=1.0, gap=1.0, noise=20.0,
+                          gap_exact=True),
+    "joint_s15_g20": dict(scale=0.6, pixel=0.8, slice_spacing=1.5, gap=2.0, noise=20.0,
+                          gap_exact=True, direction_angles_deg=(12.0, -8.0, 20.0)),
+    "joint_s20_g15": dict(scale=0.6, pixel=0.8, slice_spacing=2.0, gap=1.5, noise=22.0,
+                          gap_exact=True),
+    "joint_s25_g12": dict(scale=0.6, pixel=0.8, slice_spacing=2.5, gap=1.2, noise=25.0,
+                          gap_exact=True, direction_angles_deg=(-9.0, 14.0, -25.0)),
+    "joint_s30_g30": dict(scale=0.6, pixel=0.8, slice_spacing=3.0, gap=3.0, noise=25.0,
+                          gap_exact=True),
+    # Cases where the paper's HT step matters (issue 14): bone that W_H0 = [H0, theta_max]
+    # misses and W_HT = [HT, theta_max] holds; the truth is the same outer envelope.
+    # Osteoporotic proximal end (head, neck, trochanters): trabecular 120-200 HU, the 0.8 mm
+    # cortex at 270 +- 20 HU (after the blur 150-290 HU: all below H0 = 300, above HT = 150).
+    "osteo": dict(scale=0.6, pixel=0.8, slice_spacing=1.0, gap=3.0, noise=20.0,
+                  low_density_end="proximal", low_trab_hu=160.0, low_trab_var=40.0,
+                  low_subcortical_hu=0.0, low_cortex_hu=270.0, low_cortex_var=20.0),
+    # Thin end cortex at both ends (0.4 mm, 700 +- 60 HU, over trabecular bone at 150-210 HU)
+    # under a soft kernel (PSF sigma 0.7 mm) and 2 mm thick overlapping slices: its blurred
+    # peak lies mostly below H0 (W_H0 patchy at the ends), above HT everywhere.
+    "thin_cortex": dict(scale=0.6, pixel=0.8, slice_spacing=1.0, slice_thickness=2.0, gap=3.0,
+                        noise=20.0, psf_sigma=0.7, cortex_end=0.4, low_density_end="both",
+                        low_trab_hu=180.0, low_trab_var=30.0, low_subcortical_hu=20.0,
+                        low_cortex_hu=700.0, low_cortex_var=60.0),
+    # Windows in the cortex (W_H0 broken, into the marrow cavity in the shaft) filled with
+    # low-density bone at 250 +- 20 HU (inside W_HT).
+    "cortex_holes": dict(scale=0.6, pixel=0.8, slice_spacing=1.0, gap=3.0, noise=20.0,
+                         cortex_holes=14, cortex_hole_mm=2.0, cortex_hole_hu=250.0),
 }
 
 
@@ -75,8 +130,10 @@ class Phantom:
     """ct: int16 HU, physical LPS geometry (non-zero origin, direction possibly oblique).
     mask: rough uint8 segment of the bone on a coarser grid (holes, islands, a missing slab).
     truth / neighbour_truth: watertight meshes (LPS mm) of the bone's outer envelope and of the
-    hip-like cup. info: the case parameters plus derived figures; info["_model"] is the
-    geometry/HU model object (not JSON-serialisable; drop keys starting with "_")."""
+    hip-like cup. info: the case parameters plus derived figures (gap_min_mm: the smallest
+    distance between the two truths); info["_model"] is the geometry/HU model object (not
+    JSON-serialisable; drop keys starting with "_"). Label maps of both bones:
+    :meth:`labels_rough`, :meth:`labels_ai`."""
 
     ct: sitk.Image
     mask: sitk.Image
@@ -87,6 +144,20 @@ class Phantom:
     def bone_sdf(self, physical_points: np.ndarray) -> np.ndarray:
         """Signed distance (mm, negative inside) of the true bone at physical LPS points."""
         return self.info["_model"].bone_sdf(self.info["_model"].to_local(physical_points))
+
+    def cup_sdf(self, physical_points: np.ndarray) -> np.ndarray:
+        """Signed distance (mm, negative inside) of the true hip-like cup at physical LPS
+        points (n, 3) -> (n,); a 1-Lipschitz bound, exact around the joint."""
+        return self.info["_model"].cup_sdf(self.info["_model"].to_local(physical_points))
+
+    def labels_rough(self) -> sitk.Image:
+        """Both bones as rough labels on the grid of :attr:`mask` (see :func:`labels_rough`)."""
+        return labels_rough(self)
+
+    def labels_ai(self, grid_mm=2.0, steal_mm: float = 0.0, subsamples: int = 3,
+                  seed: int | None = None) -> sitk.Image:
+        """Both bones as an AI-style coarse segmentation (see :func:`labels_ai`)."""
+        return labels_ai(self, grid_mm=grid_mm, steal_mm=steal_mm, subsamples=subsamples, seed=seed)
 
 
 # ---------------------------------------------------------------------------- SDF primitives
@@ -147,7 +218,11 @@ class _PlaneWaves:
 class _Model:
     """Geometry and HU model of one phantom (local frame, mm)."""
 
-    def __init__(self, cfg, rng):
+    def __init__(self, cfg, rng, aux=None):
+        """cfg: the case parameters; rng: the case's main random stream (fields, pores,
+        foramina; then the CT noise and the rough mask draw from it, in this order); aux:
+        a second stream for the options added later (geometry variation, cortical holes),
+        so that those options never shift the main stream of the old cases."""
         self.cfg = cfg
         s = cfg["scale"]
         self.s = s
@@ -162,6 +237,8 @@ class _Model:
         self.lesser = (v(-9, 7, 22), 6.0 * s)
         self.flare = (v(0, 2, -50), v(23, 17, 15))
         self.condyles = [(v(13, 4, -62), 12.0 * s), (v(-13, 4, -62), 12.0 * s)]
+        if cfg.get("vary_geometry"):
+            self._vary_geometry(aux)
         self.blend = max(3.0 * s, 0.6)
         # Cortex and marrow cavity.
         self.t_shaft = max(cfg["cortex_shaft"] * s, 1.0)
@@ -176,8 +253,14 @@ class _Model:
         self.cup_r_in = self.head_r + cfg["gap"]
         self.gap = cfg["gap"]
         self.cup_t = max(5.0 * s, 2.0)
-        self.pelvis_blob = (self.head_c + self.cup_axis * (self.cup_r_in + self.cup_t + 3.0 * s),
-                            9.0 * s)
+        self.gap_exact = bool(cfg.get("gap_exact"))
+        blob_at = self.cup_r_in + self.cup_t + 3.0 * s
+        if self.gap_exact:
+            # The blob's smooth union must not reach the cup's inner sphere (it pulled the
+            # pole of the cup to the clamp of cup_sdf): its near side stays 1.5 blend radii
+            # beyond the inner sphere, still overlapping the shell.
+            blob_at = max(blob_at, self.cup_r_in + 9.0 * s + 1.5 * max(2.0 * s, 0.6))
+        self.pelvis_blob = (self.head_c + self.cup_axis * blob_at, 9.0 * s)
         # HU fields.
         self.trab_field = _PlaneWaves(rng, 12, (6.0 * max(s, 0.3), 25.0 * max(s, 0.3)))
         self.cort_field = _PlaneWaves(rng, 8, (20.0, 60.0))
@@ -190,6 +273,9 @@ class _Model:
             c = np.array([0.0, self.shaft[2] + 0.25 * r_l, 3.0 * s])
             self.lesion = (c, r_l)
         self._place_pores(rng)
+        self.cortex_holes = np.zeros((0, 3))
+        if cfg.get("cortex_holes", 0) > 0:
+            self._place_cortex_holes(aux)
 
     # ---- geometry
 
@@ -215,6 +301,10 @@ class _Model:
         cup = _smin(cup, _sphere(p, *self.pelvis_blob), max(2.0 * self.s, 0.6))
         # The rounded rim comes closer to the neck than the joint gap: keep the whole cup at
         # least `gap` away from the bone (smooth max >= max, so the bound holds exactly).
+        if self.gap_exact:
+            # A hard maximum: where the head is a sphere both terms are equal (no crease), and
+            # the smooth maximum's bump (+0.075 cup_t) would widen the whole joint beyond `gap`.
+            return np.maximum(cup, self.gap - self.bone_sdf(p))
         return -_smin(-cup, -(self.gap - self.bone_sdf(p)), 0.3 * self.cup_t)
 
     def cortex_thickness(self, p):
@@ -252,6 +342,62 @@ class _Model:
                 b = outer - radial[k] * (t + 0.8)
                 self.foramina.append((a, b, rng.uniform(0.4, 0.7)))
 
+    def _vary_geometry(self, aux):
+        """Perturb the parts a little (seeded by aux): every radius times U(0.95, 1.05),
+        every centre moved by up to 5 % of the part's diameter per axis, the shaft's length
+        times U(0.95, 1.05) (its axis stays the local z axis)."""
+        def size(r):
+            return r * aux.uniform(0.95, 1.05, size=np.shape(r))
+
+        def move(c, r):
+            return c + aux.uniform(-1.0, 1.0, size=3) * 0.05 * 2.0 * float(np.max(r))
+
+        a, b, r = self.shaft
+        self.shaft = (a * aux.uniform(0.95, 1.05), b * aux.uniform(0.95, 1.05), size(r))
+        self.head_r = size(self.head_r)
+        self.head_c = move(self.head_c, self.head_r)
+        self.neck_base = move(self.neck_base, self.shaft[2])
+        self.neck = (self.neck_base, self.head_c, size(self.neck[2]))
+        r = size(self.troch[1])
+        self.troch = (move(self.troch[0], r), r)
+        r = size(self.lesser[1])
+        self.lesser = (move(self.lesser[0], r), r)
+        r = size(self.flare[1])
+        self.flare = (move(self.flare[0], r), r)
+        self.condyles = [(move(c, rr), rr) for c, rr in ((c, size(r)) for c, r in self.condyles)]
+
+    def _place_cortex_holes(self, aux):
+        """cfg["cortex_holes"] centres on the outer surface (|sdf| < 0.3 mm), spread out
+        (at least 3 hole radii apart, clear of the foramina), drawn from aux."""
+        n, r = int(self.cfg["cortex_holes"]), float(self.cfg["cortex_hole_mm"])
+        lo, hi = self.bone_bbox()
+        cand = aux.uniform(lo, hi, size=(400000, 3))
+        cand = cand[np.abs(self.bone_sdf(cand)) < 0.3]
+        for a, b, rf in self.foramina:  # not on a vascular channel
+            cand = cand[_capsule(cand, a, b, rf) > r + 1.0]
+        chosen = []
+        for c in cand:
+            if all(np.linalg.norm(c - q) > 3.0 * r for q in chosen):
+                chosen.append(c)
+                if len(chosen) == n:
+                    break
+        self.cortex_holes = np.array(chosen).reshape(-1, 3)
+
+    def low_density_weight(self, p):
+        """(n,) in [0, 1]: 1 in the low-density end(s) of cfg["low_density_end"], 0 in the
+        diaphysis, a smoothstep over dia_ramp between (the cortex thickness' own ramp)."""
+        z0, z1 = self.dia_z
+        prox = _smoothstep(z1, z1 + self.dia_ramp, p[:, 2])
+        dist = 1.0 - _smoothstep(z0 - self.dia_ramp, z0, p[:, 2])
+        which = self.cfg["low_density_end"]
+        if which == "proximal":
+            return prox
+        if which == "distal":
+            return dist
+        if which == "both":
+            return np.maximum(prox, dist)
+        raise ValueError(f"low_density_end must be None, 'proximal', 'distal' or 'both', not {which!r}")
+
     def bone_bbox(self):
         parts = [(self.shaft[0], self.shaft[2]), (self.shaft[1], self.shaft[2]),
                  (self.head_c, self.head_r), (self.troch[0], self.troch[1].max()),
@@ -288,13 +434,33 @@ class _Model:
         pi = p[inside]
         depth = -d[inside]
         t = self.cortex_thickness(pi)
-        hu = 300.0 + 110.0 * self.trab_field(pi)
-        # Trabecular bone is denser just under the cortex (as in real epiphyses).
-        hu = hu + 80.0 * np.exp(-np.maximum(depth - t, 0.0) / 2.0)
+        low = cfg.get("low_density_end") is not None
+        if not low:
+            hu = 300.0 + 110.0 * self.trab_field(pi)
+            # Trabecular bone is denser just under the cortex (as in real epiphyses).
+            hu = hu + 80.0 * np.exp(-np.maximum(depth - t, 0.0) / 2.0)
+        else:
+            # Low-density end(s): trabecular bone (and, if low_cortex_hu, the cortex) blend
+            # towards the low values with low_density_weight.
+            L = self.low_density_weight(pi)
+            f = self.trab_field(pi)
+            hu = (1.0 - L) * (300.0 + 110.0 * f) + L * (cfg["low_trab_hu"] + cfg["low_trab_var"] * f)
+            sub = (1.0 - L) * 80.0 + L * cfg["low_subcortical_hu"]
+            hu = hu + sub * np.exp(-np.maximum(depth - t, 0.0) / 2.0)
         cav = _capsule(pi, *self.cavity) < 0
         hu = np.where(cav, 50.0 + 30.0 * self.marrow_field(pi), hu)
         cort = depth < t
-        hu = np.where(cort, 1400.0 + 180.0 * self.cort_field(pi), hu)
+        g = self.cort_field(pi)
+        cort_hu = 1400.0 + 180.0 * g
+        if low and cfg["low_cortex_hu"] is not None:
+            cort_hu = (1.0 - L) * cort_hu + L * (cfg["low_cortex_hu"] + cfg["low_cortex_var"] * g)
+        hu = np.where(cort, cort_hu, hu)
+        if len(self.cortex_holes):
+            # Windows in the cortex filled with low-density bone (in W_HT, not in W_H0).
+            from scipy.spatial import cKDTree
+            dist, _ = cKDTree(self.cortex_holes).query(pi, distance_upper_bound=cfg["cortex_hole_mm"])
+            hole = (dist < cfg["cortex_hole_mm"]) & (depth < t + 0.3)
+            hu[hole] = cfg["cortex_hole_hu"] + 20.0 * self.marrow_field(pi[hole])
         if len(self.pores):
             from scipy.spatial import cKDTree
             tree = cKDTree(self.pores[:, :3])
@@ -523,10 +689,212 @@ def _rough_mask(model, cfg, rng, ct_size, ct_spacing):
     return img
 
 
+# ---------------------------------------------------------------------------- label maps of both bones
+
+LABEL_FEMUR = 1
+LABEL_CUP = 2
+
+
+def _grid_image(arr_zyx: np.ndarray, model, start_local, spacing) -> sitk.Image:
+    """uint8 image of a (z, y, x) array on a grid aligned with the model's local frame:
+    voxel (i, j, k) is at local start_local + spacing * (i, j, k), physically
+    origin + D @ (local - local0), as every image of the phantom."""
+    img = sitk.GetImageFromArray(np.ascontiguousarray(arr_zyx, dtype=np.uint8))
+    img.SetSpacing([float(v) for v in spacing])
+    img.SetDirection(model.direction.ravel().tolist())
+    img.SetOrigin(model.to_physical(np.asarray(start_local, float)[None])[0].tolist())
+    return img
+
+
+def _grid_start_local(img: sitk.Image, model) -> np.ndarray:
+    """Local position of voxel (0, 0, 0) of an image made by this module (checks that its
+    direction is the model's, i.e. that its axes are the local axes)."""
+    D = np.array(img.GetDirection()).reshape(3, 3)
+    if not np.allclose(D, model.direction, atol=1e-9):
+        raise ValueError("the image's direction differs from the phantom's")
+    return model.to_local(np.array(img.GetOrigin(), float)[None])[0]
+
+
+def _local_points(start, spacing, i0, i1):
+    """Local positions (n, 3), x fastest, of the voxels i0 <= (i, j, k) < i1 of a grid."""
+    xs, ys, zs = (start[k] + spacing[k] * np.arange(i0[k], i1[k]) for k in range(3))
+    Z, Y, X = np.meshgrid(zs, ys, xs, indexing="ij")
+    return np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+
+
+def _cup_rough(model, rng, start, spacing, size) -> np.ndarray:
+    """Rough mask (z, y, x) bool of the cup on the grid (start, spacing, size), made like
+    the femur's in :func:`_rough_mask` but with scales for a thin shell (see
+    :func:`labels_rough`)."""
+    out = np.zeros(tuple(int(v) for v in size[::-1]), bool)
+    h = float(min(spacing[0], spacing[1]))  # in-plane spacing
+    lo, hi = model.cup_bbox()
+    size = np.asarray(size, int)
+    i0 = np.clip(np.floor((lo - 2 * h - start) / spacing).astype(int), 0, size)
+    i1 = np.clip(np.ceil((hi + 2 * h - start) / spacing).astype(int) + 1, 0, size)
+    if np.any(i1 <= i0):
+        return out
+    p = _local_points(start, spacing, i0, i1)
+    wob = _PlaneWaves(rng, 10, (8.0, 30.0))
+    m = model.cup_sdf(p) + 0.2 * h * wob(p) + 0.05 * h < 0
+    inside = np.flatnonzero(m)
+    for c in p[rng.choice(inside, size=min(2, len(inside)), replace=False)]:
+        m &= _sphere(p, c, 1.0 * h) > 0
+    # One island beside the cup, clear of both bones.
+    away = np.flatnonzero((model.cup_sdf(p) > 3.0 * h) & (model.bone_sdf(p) > 6.0 * model.s + 3.0 * h))
+    for c in p[rng.choice(away, size=min(1, len(away)), replace=False)]:
+        m |= _sphere(p, c, 1.0 * h) < 0
+    sub = m.reshape(tuple((i1 - i0)[::-1]))
+    out[i0[2]:i1[2], i0[1]:i1[1], i0[0]:i1[0]] = sub
+    return out
+
+
+def labels_rough(phantom: Phantom) -> sitk.Image:
+    """The femur's rough segment and a rough segment of the cup in one label map.
+
+    Parameters
+    ----------
+    phantom : Phantom
+
+    Returns
+    -------
+    sitk.Image
+        uint8, on the grid of ``phantom.mask`` (same size, spacing, origin and direction;
+        array axes (z, y, x)). 0 = background, 1 = femur: exactly ``phantom.mask`` (wobble,
+        shrink, holes, islands, a missing slab, all scaled by the mask spacing's *max*);
+        2 = cup: the cup's SDF + 0.2 h * wobble + 0.05 h < 0 with h the mask's *in-plane*
+        spacing (the femur's scales, 0.6 / 0.3 * max spacing, would cut the 2-5 mm thin shell
+        apart), two holes and one island of radius h. Label 2 only where label 1 is not, so
+        the labels never overlap. Without a neighbour (``neighbour=False``) there is no label 2.
+        Deterministic: the cup's random stream is seeded by (seed, 2).
+    """
+    model = phantom.info["_model"]
+    lab = sitk.GetArrayFromImage(phantom.mask).astype(np.uint8)
+    lab[lab > 0] = LABEL_FEMUR
+    if model.cfg["neighbour"]:
+        rng = np.random.default_rng([int(phantom.info["seed"]), 2])
+        start = _grid_start_local(phantom.mask, model)
+        cup = _cup_rough(model, rng, start, np.array(phantom.mask.GetSpacing()),
+                         np.array(phantom.mask.GetSize()))
+        lab[cup & (lab == 0)] = LABEL_CUP
+    img = _grid_image(lab, model, _grid_start_local(phantom.mask, model), phantom.mask.GetSpacing())
+    return img
+
+
+def labels_ai(phantom: Phantom, grid_mm=2.0, steal_mm: float = 0.0, subsamples: int = 3,
+              seed: int | None = None) -> sitk.Image:
+    """Both bones as an AI segmentation brings them (TotalSegmentator-like): coarse and
+    stair-stepped, on its own grid, optionally wrong at the joint.
+
+    Every voxel of a coarse grid takes the majority of the *truth* over subsamples**3
+    points spread evenly in it (1 where the femur's SDF < 0, 2 where the cup's SDF < 0, else
+    0; ties go to the lower label). Voxels whose centre lies farther than 1.5 half-diagonals
+    + 0.2 mm from both surfaces are decided by their centre alone (the SDFs are 1-Lipschitz),
+    so only the boundary band is subsampled. A consumer resamples the image
+    nearest-neighbour onto the CT (:func:`resample_nearest`).
+
+    Parameters
+    ----------
+    phantom : Phantom
+    grid_mm : float or (3,) floats
+        Spacing (x, y, z) of the coarse grid (mm), 1.5-3 mm for AI masks.
+    steal_mm : float
+        > 0: femur voxels whose centre lies within steal_mm of the cup (the cup's SDF at the
+        centre < steal_mm) become cup voxels, as an AI mask that puts the top of the head into
+        the hip bone. The depth taken from the head is about steal_mm - gap (nothing when
+        steal_mm <= gap). Background voxels are left as they are.
+    subsamples : int
+        Points per axis in each voxel (3 -> 27 votes).
+    seed : int or None
+        Seeds the grid's phase (its first voxel centre lies 0 to half a voxel inside the
+        corner of the CT's field of view, at random per axis); None = the phantom's seed.
+        Deterministic for a seed.
+
+    Returns
+    -------
+    sitk.Image
+        uint8 (array axes (z, y, x)), 0 = background, 1 = femur, 2 = cup; direction = the
+        CT's, spacing = grid_mm, covering the CT's field of view (voxel boundaries included).
+    """
+    model = phantom.info["_model"]
+    grid = np.broadcast_to(np.asarray(grid_mm, float), (3,)).copy()
+    if np.any(grid <= 0) or subsamples < 1:
+        raise ValueError("grid_mm must be > 0 and subsamples >= 1")
+    rng = np.random.default_rng([int(phantom.info["seed"] if seed is None else seed), 3])
+    ct = phantom.ct
+    ct_sp = np.array(ct.GetSpacing(), float)
+    ct_size = np.array(ct.GetSize(), int)
+    box_lo = model.local0 - 0.5 * ct_sp
+    box_hi = model.local0 + (ct_size - 0.5) * ct_sp
+    start = box_lo + (1.0 - rng.uniform(0.0, 1.0, 3)) * 0.5 * grid
+    size = np.ceil((box_hi - start) / grid + 0.5).astype(int)
+    neighbour = bool(model.cfg["neighbour"])
+
+    p = _local_points(start, grid, np.zeros(3, int), size)
+    d_f = model.bone_sdf(p)
+    d_c = model.cup_sdf(p) if neighbour else np.full(len(p), np.inf)
+    lab = np.where(d_f < 0, LABEL_FEMUR, np.where(d_c < 0, LABEL_CUP, 0)).astype(np.uint8)
+    r = 1.5 * 0.5 * float(np.linalg.norm(grid)) + 0.2
+    near = np.flatnonzero((np.abs(d_f) < r) | (np.abs(d_c) < r))
+    if subsamples > 1 and len(near):
+        t = ((np.arange(subsamples) + 0.5) / subsamples - 0.5)
+        off = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * grid
+        n_off = len(off)
+        step = max(1, int(2e6 // n_off))
+        for a in range(0, len(near), step):
+            idx = near[a:a + step]
+            q = (p[idx][:, None, :] + off[None]).reshape(-1, 3)
+            f = (model.bone_sdf(q) < 0).reshape(-1, n_off)
+            c = ((model.cup_sdf(q) < 0).reshape(-1, n_off) & ~f) if neighbour else np.zeros_like(f)
+            votes = np.column_stack([n_off - f.sum(1) - c.sum(1), f.sum(1), c.sum(1)])
+            lab[idx] = np.argmax(votes, axis=1).astype(np.uint8)
+    if steal_mm > 0 and neighbour:
+        lab[(lab == LABEL_FEMUR) & (d_c < steal_mm)] = LABEL_CUP
+    return _grid_image(lab.reshape(tuple(size[::-1])), model, start, grid)
+
+
+def make_labels(phantom: Phantom, kind: str = "rough", **kw) -> sitk.Image:
+    """Label map of both bones: kind "rough" -> :func:`labels_rough`, "ai" ->
+    :func:`labels_ai` (keywords grid_mm, steal_mm, subsamples, seed). uint8, 0 =
+    background, 1 = femur, 2 = cup."""
+    if kind == "rough":
+        if kw:
+            raise ValueError(f"labels_rough takes no parameters, got {', '.join(sorted(kw))}")
+        return labels_rough(phantom)
+    if kind == "ai":
+        return labels_ai(phantom, **kw)
+    raise ValueError(f"Unknown label kind {kind!r}; choose 'rough' or 'ai'")
+
+
+def resample_nearest(labels: sitk.Image, reference: sitk.Image) -> sitk.Image:
+    """labels resampled nearest-neighbour onto reference's grid (as a consumer puts an AI
+    label map onto the CT); outside labels' grid -> 0. Same pixel type as labels."""
+    return sitk.Resample(labels, reference, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
+                         labels.GetPixelID())
+
+
 # ---------------------------------------------------------------------------- entry point
 
 def make_phantom(case: str = "easy", seed: int = 0, **overrides) -> Phantom:
-    """A synthetic CT, a rough segment and the ground-truth surfaces (see module doc)."""
+    """A synthetic CT, a rough segment and the ground-truth surfaces (see module doc).
+
+    Parameters
+    ----------
+    case : str
+        A key of :data:`CASES`.
+    seed : int
+        Seeds pores, foramina, HU fields, noise and the rough mask; with
+        ``vary_geometry=True`` also the parts' sizes and positions.
+    **overrides
+        Any key of ``_BASE`` (e.g. ``gap=1.5``, ``slice_spacing=2.0``,
+        ``low_density_end="proximal"``); unknown keys raise ValueError.
+
+    Returns
+    -------
+    Phantom
+        ct (int16, array (z, y, x)), mask, truth, neighbour_truth (None without the cup),
+        info.
+    """
     if case not in CASES:
         raise ValueError(f"Unknown phantom case {case!r}; choose one of {', '.join(CASES)}")
     cfg = dict(_BASE)
@@ -536,7 +904,10 @@ def make_phantom(case: str = "easy", seed: int = 0, **overrides) -> Phantom:
         raise ValueError(f"Unknown phantom parameter(s): {', '.join(sorted(unknown))}")
     cfg.update(overrides)
     rng = np.random.default_rng(seed)
-    model = _Model(cfg, rng)
+    # A second stream for the later options (vary_geometry, cortex_holes): the old cases'
+    # main stream stays as it was.
+    aux = np.random.default_rng([int(seed), 1])
+    model = _Model(cfg, rng, aux)
     s = cfg["scale"]
 
     # Field of view: bone (+ cup) with a margin; the body is an elliptic cylinder around it
@@ -576,9 +947,14 @@ def make_phantom(case: str = "easy", seed: int = 0, **overrides) -> Phantom:
         v, f = _sdf_mesh(model.cup_sdf, lo_c, hi_c, h)
         neighbour = Surface(model.to_physical(v), f, "LPS")
 
+    gap_min = None
+    if neighbour is not None:
+        # bone_sdf is 1-Lipschitz (a lower bound of the distance; exact around the head).
+        gap_min = float(model.bone_sdf(model.to_local(neighbour.vertices)).min())
+
     info = dict(cfg)
     info.update(
-        case=case, seed=seed,
+        case=case, seed=seed, gap_min_mm=gap_min,
         slice_thickness=cfg["slice_thickness"] or cfg["slice_spacing"],
         bone_length_mm=float(hi_b[2] - lo_b[2]),
         truth_grid_mm=h,
