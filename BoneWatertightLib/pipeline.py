@@ -29,7 +29,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from . import __version__
-from .errors import InputError, PlausibilityError, ReconstructionError, SurfaceCheckError
+from .errors import (BoneWatertightError, CancelledError, InputError, PlausibilityError,
+                     ReconstructionError, SurfaceCheckError)
 from .mesh import cap as _cap
 from .mesh import checks as _checks, operators as _operators
 from .mesh.cap import cap_plane
@@ -86,6 +87,11 @@ class ReconstructionResult:
     intermediates: dict = field(default_factory=dict)
     label: int = 0
     name: str = ""
+    error: Optional[Exception] = None
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
 
 
 @dataclass
@@ -152,7 +158,7 @@ def _select_neighbours(labels: np.ndarray, values: list, targets: list, neighbou
 def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
                      params: Optional[Parameters] = None,
                      progress: Optional[ProgressCallback] = None, *, neighbours="auto",
-                     names: Optional[dict] = None) -> JointResult:
+                     names: Optional[dict] = None, keep_going: bool = False) -> JointResult:
     """Reconstruct several bones of one segmentation together.
 
     Parameters
@@ -170,11 +176,15 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
         Which other labels compete as neighbours: every other label (auto), none, or these.
     names : dict, optional
         Label value -> name, for reports and messages.
+    keep_going : bool
+        When a bone fails (its checks, its plausibility, its threshold windows), go on with the
+        others: its result has ``error`` set and no surface (default: raise).
 
     Returns
     -------
     JointResult
-        ``bones[i]`` for ``targets[i]``; ``pairs``: every pair of targets, checked exactly.
+        ``bones[i]`` for ``targets[i]``; ``pairs``: every pair of targets that succeeded,
+        checked exactly.
 
     Raises
     ------
@@ -236,12 +246,18 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     thresholds = {"h0": float(h0), "ht": float(ht), "theta_max": float(params.theta_max),
                   "h0_auto": params.h0 is None, "ht_auto": params.ht is None,
                   "soft_tissue_hu": float(soft), "cortex_hu": float(cortex)}
+    failed = {}
+
+    def fail(k, exc):
+        if not keep_going or not isinstance(exc, BoneWatertightError) or isinstance(exc, CancelledError):
+            raise exc
+        failed[k] = exc
+
     for t in prep.targets:
         seg = lab == t
         window = (ct_f[seg] >= ht) & (ct_f[seg] <= params.theta_max)
         if not window.any():
-            vals = ct_f[seg]
-            raise _threshold_error(name_of(t), ht, params.theta_max, vals)
+            fail(t, _threshold_error(name_of(t), ht, params.theta_max, ct_f[seg]))
 
     sub = _stage(prog, "ownership")
     t0 = time.perf_counter()
@@ -255,9 +271,14 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     bones = {}
     step_voxels = max(1, int(round(min(prep.ct_spacing) / d)))
     for i, k in enumerate(prep.targets):
+        if k in failed:
+            continue
         part = sub.stage(i / len(prep.targets), (i + 1) / len(prep.targets))
-        bones[k] = _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, part, name_of(k),
-                                 step_voxels)
+        try:
+            bones[k] = _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, part,
+                                     name_of(k), step_voxels)
+        except Exception as exc:  # noqa: BLE001 - fail() re-raises unless keep_going
+            fail(k, exc)
 
     # --- territories: the midway surfaces between bones (from the M0s)
     sub = _stage(prog, "territories")
@@ -276,6 +297,8 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
         ct_smooth = ndimage.gaussian_filter(
             prep.ct, sigma=max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / d), mode="nearest")
     for i, k in enumerate(prep.targets):
+        if k not in bones:
+            continue
         part = sub.stage(i / len(prep.targets), (i + 1) / len(prep.targets))
         allowed = _contacts.allowed_test(terr.get(k), d, params.min_gap)
         _shape_bone(bones[k], ct_smooth, ht, params, d, allowed, part)
@@ -298,15 +321,24 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     results = []
     for i, k in enumerate(prep.targets):
         part = sub.stage(i / (len(prep.targets) + 1), (i + 1) / (len(prep.targets) + 1))
-        results.append(_finish_bone(prep, own, lab, k, bones[k], params, band, name_of(k), part,
-                                    thresholds))
+        if k in bones:
+            try:
+                results.append(_finish_bone(prep, own, lab, k, bones[k], params, band,
+                                            name_of(k), part, thresholds))
+                continue
+            except Exception as exc:  # noqa: BLE001 - fail() re-raises unless keep_going
+                fail(k, exc)
+        results.append(ReconstructionResult(surface=None, distance_to_constraints=None,
+                                            report=None, label=int(prep.values[k - 1]),
+                                            name=name_of(k), error=failed[k]))
 
     # --- every pair, exactly
     pairs = []
     contact_of = {(cc["a"], cc["b"]): cc for cc in own.contacts}
     by_k = dict(zip(prep.targets, results))
-    for i, a in enumerate(prep.targets):
-        for b in prep.targets[i + 1:]:
+    good = [k for k in prep.targets if by_k[k].ok]
+    for i, a in enumerate(good):
+        for b in good[i + 1:]:
             ra, rb = by_k[a], by_k[b]
             rep = _contacts.pair_report(ra.surface.vertices, ra.surface.faces,
                                         rb.surface.vertices, rb.surface.faces)
@@ -324,6 +356,8 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
             "joint, or use a finer resample spacing.")
     shared.total = time.perf_counter() - t_all
     for r in results:
+        if not r.ok:
+            continue
         r.report.timings.import_open3d = shared.import_open3d
         r.report.timings.prepare = shared.prepare
         r.report.timings.filter = shared.filter

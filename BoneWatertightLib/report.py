@@ -209,6 +209,7 @@ class CaseReport:
     coordinate_system: str = "LPS"
     tool: str = "BoneWatertight"
     version: str = ""
+    pairs: list = field(default_factory=list)
 
     @property
     def segment_name(self) -> str:
@@ -268,12 +269,44 @@ def summary_line(name: str, checks, distances: DistanceSummary, seconds: Optiona
     return text
 
 
+def shape_text(pipeline) -> str:
+    """'volume 54.9 ml (segment 66.0 ml, 95 % of it inside), cap 120 mm^2, 1 warning: ...'."""
+    plaus = getattr(pipeline, "plausibility", None)
+    parts = []
+    if plaus is not None:
+        parts.append(f"volume {plaus.surface_ml:.1f} ml (segment {plaus.segment_ml:.1f} ml, "
+                     f"{100 * plaus.segment_inside_fraction:.0f} % of it inside)")
+    cap = getattr(pipeline, "cap", None) or {}
+    if cap.get("area_mm2"):
+        parts.append(f"capped at the image border ({cap['area_mm2']:.0f} mm^2)")
+    warnings = getattr(pipeline, "warnings", None) or []
+    if warnings:
+        parts.append(f"{len(warnings)} WARNING{'S' if len(warnings) > 1 else ''}: "
+                     + "; ".join(warnings))
+    return ", ".join(parts)
+
+
 def case_summary_line(report: CaseReport) -> str:
     """The summary line of a case report."""
     out = report.output
-    return summary_line(report.segment_name, report.checks, report.distance_to_constraints_mm,
+    line = summary_line(report.segment_name, report.checks, report.distance_to_constraints_mm,
                         report.timings_s.total, out.n_vertices, out.n_faces, out.path,
                         out.coordinate_system, out.picture_error)
+    shape = shape_text(report.pipeline)
+    return line + (f"; {shape}" if shape else "")
+
+
+def pair_summary_line(pair) -> str:
+    """'<a> | <b>: smallest gap 0.31 mm, no interpenetration, joint space seen on 62 % of
+    their contact'."""
+    gap = "no contact" if pair.min_gap_mm is None else f"smallest gap {pair.min_gap_mm:.2f} mm"
+    state = "no interpenetration" if pair.ok else (
+        f"INTERPENETRATE ({pair.crossing_face_pairs} crossing face pairs)")
+    seen = ""
+    if pair.joint_valley_seen_fraction is not None and pair.joint_contact_mm2 > 0:
+        seen = (f", joint space seen on {100 * pair.joint_valley_seen_fraction:.0f} % of their "
+                f"{pair.joint_contact_mm2:.0f} mm^2 contact")
+    return f"{pair.a} | {pair.b}: {gap}, {state}{seen}"
 
 
 # ----------------------------------------------------------------------------------------

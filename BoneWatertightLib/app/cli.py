@@ -22,7 +22,7 @@ from ..errors import (EXIT_CANCELLED, EXIT_INPUT, EXIT_INTERNAL, EXIT_OK, Cancel
                       CancelledError, InputError, exit_code_for, one_line)
 from ..io import files as bwfiles
 from ..io import images, segmentations
-from ..report import case_summary_line
+from ..report import case_summary_line, pair_summary_line
 from . import run
 from .options import (Parser, add_io_options, add_parameter_options, add_preset_option,
                       parameters_from_args)
@@ -190,13 +190,17 @@ def _main(argv=None) -> int:
 
 def check_single_args(args, parser) -> None:
     missing = [flag for flag, value in (("--ct", args.ct), ("--seg", args.seg),
-                                        ("--label", args.label), ("--out", args.out)) if not value]
+                                        ("--out", args.out)) if not value]
+    if not args.label and not args.all_labels:
+        missing.append("--label (or --all-labels)")
     if missing:
         parser.error("missing " + ", ".join(missing))
-    if len(args.label) > 1 and "{label}" not in args.out:
-        parser.error(f"{len(args.label)} labels given but --out has no {{label}} placeholder; "
+    if args.label and args.all_labels:
+        parser.error("--label and --all-labels exclude each other")
+    if (args.all_labels or len(args.label) > 1) and "{label}" not in args.out:
+        parser.error("several labels but --out has no {label} placeholder; "
                      "use e.g. --out bone_{label}.stl")
-    if len(set(args.label)) != len(args.label):
+    if args.label and len(set(args.label)) != len(args.label):
         parser.error("the same --label is given twice")
     for path in [args.out] + ([args.report] if args.report else []):
         if "{case}" in path:
@@ -211,35 +215,66 @@ def check_single_args(args, parser) -> None:
         parser.error("--picture must be a .png file")
 
 
+def parse_neighbours(text: str, names: dict):
+    """'auto', 'none' or a list of label values from a comma-separated list of labels."""
+    text = (text or "auto").strip()
+    if text.lower() in ("auto", "none"):
+        return text.lower()
+    return [segmentations.resolve_label(names, part.strip()) for part in text.split(",")
+            if part.strip()]
+
+
 def _run_single(args, parser) -> int:
     check_single_args(args, parser)
     params = parameters_from_args(args)
-    reconstruct = run.load_reconstruct()
     system = "RAS" if args.ras else "LPS"
 
     t0 = time.perf_counter()
     ct = images.read_ct(args.ct, args.ct_series)
-    segments = [segmentations.read_segment(args.seg, label) for label in args.label]
+    labels, names = segmentations.read_label_image(args.seg)
+    if args.all_labels:
+        present = getattr(names, "present", None)
+        targets = [v for v in sorted(names) if present is None or v in present]
+        if not targets:
+            raise InputError(f"{args.seg} holds no painted label.")
+    else:
+        targets = [segmentations.resolve_label(names, label) for label in args.label]
+    neighbours = parse_neighbours(args.neighbours, names)
     t_read = time.perf_counter() - t0
-
-    outputs = [run.fill_template(args.out, name) for _, name in segments]
-    for i, out in enumerate(outputs):
-        j = outputs.index(out)
-        if j != i:
-            same = segments[i][1] == segments[j][1]
-            raise InputError(
-                f"--label {args.label[j]} and --label {args.label[i]} "
-                + (f"are the same segment '{segments[i][1]}'; give each bone once."
-                   if same else f"give the same output file {out}; use distinct labels."))
-
-    # One transaction for the whole run: the surfaces, pictures and the report appear together
-    # when it commits; a label that fails only discards its own files.
-    reports, codes = [], []
+    for i, v in enumerate(targets):
+        if v in targets[:i]:
+            raise InputError(f"--label {args.label[targets.index(v)]} and --label {args.label[i]} "
+                             f"are the same segment '{names.get(v, v)}'; give each bone once.")
+    label_names = {v: str(names.get(v, v)) for v in targets}
+    outputs = {v: run.fill_template(args.out, label_names[v]) for v in targets}
+    if len(set(outputs.values())) != len(outputs):
+        raise InputError("Two labels give the same output file name; use distinct labels.")
+    pictures = None
+    if args.picture:
+        pictures = {}
+        for v in targets:
+            pic = run.fill_template(args.picture, label_names[v])
+            if len(targets) > 1 and "{label}" not in args.picture:
+                pic = os.path.splitext(pic)[0] + f"_{run.safe_name(label_names[v])}.png"
+            pictures[v] = pic
+    bar = ProgressBar(enabled=None if not args.quiet else False, verbose=args.verbose)
+    inputs = {"ct": os.path.abspath(args.ct), "seg": os.path.abspath(args.seg),
+              "ct_size": list(ct.GetSize()), "ct_spacing": list(ct.GetSpacing()),
+              "preset": args.preset}
     tx = bwfiles.OutputTransaction()
     try:
-        _run_labels(args, tx, ct, segments, outputs, params, system, t_read, reconstruct,
-                    reports, codes)
+        with tx:
+            joint = run.run_joint(ct, labels, targets, dict(names), outputs, params,
+                                  coordinate_system=system, pictures=pictures,
+                                  intermediates_dir=args.save_intermediates,
+                                  neighbours=neighbours, progress=bar, inputs=inputs,
+                                  read_seconds=t_read, report_path=args.report,
+                                  transaction=tx)
+    except CancelledError:
+        bar.close()
+        raise KeyboardInterrupt from None
     except KeyboardInterrupt as exc:
+        bar.close()
         if tx.state != "committed":
             raise
         # A signal that arrived while the files were being renamed is acted on right after.
@@ -247,49 +282,19 @@ def _run_single(args, parser) -> int:
         sys.stderr.write(f"\nerror: cancelled{how} just after the outputs were written; they "
                          "are complete.\n")
         return EXIT_CANCELLED
+    finally:
+        bar.close()
+    codes = [EXIT_OK] * len(joint.reports)
+    for name, exc in joint.failures:
+        which = f"{name}: " if len(targets) > 1 else ""
+        sys.stderr.write(f"error: {which}{one_line(exc)}\n")
+        code = exit_code_for(exc)
+        if code == EXIT_INTERNAL:
+            raise exc
+        codes.append(code)
     if not args.quiet:
-        for report in reports:
+        for report in joint.reports:
             print(case_summary_line(report), flush=True)
+        for pair in joint.pairs:
+            print(pair_summary_line(pair), flush=True)
     return max(codes, key=lambda c: (c != 0, c == EXIT_INPUT, c)) if codes else EXIT_OK
-
-
-def _run_labels(args, tx, ct, segments, outputs, params, system, t_read, reconstruct,
-                reports, codes) -> None:
-    """Reconstruct each label into ``tx`` (appending to ``reports`` and ``codes``) and commit."""
-    with tx:
-        for (mask, name), label, out in zip(segments, args.label, outputs):
-            bar = ProgressBar(enabled=None if not args.quiet else False,
-                              prefix=f"{name}: " if len(segments) > 1 else "",
-                              verbose=args.verbose)
-            inputs = {"ct": os.path.abspath(args.ct), "seg": os.path.abspath(args.seg),
-                      "label": label, "ct_size": list(ct.GetSize()),
-                      "ct_spacing": list(ct.GetSpacing()), "preset": args.preset}
-            picture = run.fill_template(args.picture, name) if args.picture else None
-            if picture and len(segments) > 1 and "{label}" not in args.picture:
-                picture = os.path.splitext(picture)[0] + f"_{run.safe_name(name)}.png"
-            try:
-                report = run.run_case(
-                    ct, mask, name, out, params, coordinate_system=system,
-                    intermediates_dir=args.save_intermediates, picture=picture, progress=bar,
-                    inputs=inputs, read_seconds=t_read / len(segments),
-                    reconstruct=reconstruct, transaction=tx)
-            except CancelledError:
-                bar.close()
-                raise KeyboardInterrupt from None
-            except KeyboardInterrupt:
-                bar.close()
-                raise
-            except Exception as exc:
-                bar.close()
-                code = exit_code_for(exc)
-                if code == EXIT_INTERNAL:
-                    raise
-                which = f"{name}: " if len(segments) > 1 else ""
-                sys.stderr.write(f"error: {which}{one_line(exc)}\n")
-                codes.append(code)
-                continue
-            bar.close()
-            reports.append(report)
-            codes.append(EXIT_OK)
-        if args.report and reports:
-            run.write_reports(args.report, reports, tx)

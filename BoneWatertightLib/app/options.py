@@ -87,6 +87,12 @@ def add_io_options(parser: argparse.ArgumentParser) -> None:
                           help="Write intermediate results (threshold points as .ply, visible "
                                "points, M0 as .vtp) into DIR.")
     io_group.add_argument("--picture", metavar="PNG", help="Render a PNG picture of the result.")
+    io_group.add_argument("--all-labels", action="store_true",
+                          help="Reconstruct every label of --seg (together; OUT needs {label}).")
+    io_group.add_argument("--neighbours", default="auto", metavar="auto|none|LABEL,...",
+                          help="Which other labels of --seg compete as neighbours at the joints "
+                               "(no surface enters a neighbour): every other label (auto, the "
+                               "default), none, or a comma-separated list of labels.")
 
 
 def add_preset_option(parser: argparse.ArgumentParser) -> None:

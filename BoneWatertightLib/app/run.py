@@ -263,6 +263,128 @@ def run_case(ct, mask, segment_name: str, out: str, params: Parameters, *,
     return report
 
 
+def load_reconstruct_many():
+    """The several-bone pipeline entry, or DependencyError when it cannot be imported."""
+    try:
+        from ..pipeline import reconstruct_many
+    except ImportError as exc:
+        if isinstance(exc, DependencyError):
+            raise
+        raise DependencyError(f"The reconstruction pipeline cannot be imported: {exc}") from exc
+    return reconstruct_many
+
+
+@dataclass
+class JointRun:
+    """What :func:`run_joint` did: one CaseReport per bone that succeeded, one (name, error)
+    per bone that failed, and the pair checks."""
+
+    reports: list
+    failures: list
+    pairs: list
+    joint: object = None
+
+
+def run_joint(ct, labels, targets: Sequence[int], names: dict, outputs: dict,
+              params: Parameters, *, coordinate_system: str = "LPS",
+              pictures: Optional[dict] = None, intermediates_dir: Optional[str] = None,
+              also: Optional[dict] = None, neighbours="auto", progress=None,
+              inputs: Optional[dict] = None, read_seconds: float = 0.0,
+              report_path: Optional[str] = None, keep_going: bool = True,
+              transaction: Optional[bwfiles.OutputTransaction] = None) -> JointRun:
+    """Reconstruct several bones of one label map together and write their outputs.
+
+    Parameters
+    ----------
+    ct, labels : SimpleITK.Image
+        The CT (HU) and the label map (0 background; every label a bone). Not modified.
+    targets : sequence of int
+        Label values to reconstruct.
+    names : dict
+        Label value -> name (reports, summary lines, ``{label}`` in file names).
+    outputs : dict
+        Label value -> surface file.
+    params : Parameters
+    coordinate_system : {"LPS", "RAS"}
+    pictures, also : dict, optional
+        Label value -> PNG to render / more surface files of that bone.
+    intermediates_dir : str, optional
+    neighbours : "auto", "none" or sequence of int
+        The labels competing as neighbours (default: every other label).
+    progress : callable, optional
+    inputs : dict, optional
+        Description of the inputs for the reports.
+    read_seconds : float
+    report_path : str, optional
+        One JSON report (``{label}`` in it: one per bone), in the same transaction.
+    keep_going : bool
+        A bone that fails does not stop the others (its error is in ``failures``).
+    transaction : OutputTransaction, optional
+        Stage into this transaction (the caller commits) instead of committing here.
+
+    Returns
+    -------
+    JointRun
+    """
+    t_start = time.perf_counter()
+    for value in targets:
+        check_surface_path(outputs[value])
+        for path in (also or {}).get(value, ()):
+            check_surface_path(path, "an extra output")
+    reconstruct_many = load_reconstruct_many()
+    t0 = time.perf_counter()
+    joint = reconstruct_many(ct, labels, list(targets), params, progress, neighbours=neighbours,
+                             names=names, keep_going=keep_going)
+    t_reconstruct = time.perf_counter() - t0
+    reports, failures = [], []
+    with case_transaction(transaction) as tx:
+        for result in joint.bones:
+            if not result.ok:
+                failures.append((result.name, result.error))
+                continue
+            value = result.label
+            surface = result.surface
+            staged = stage_outputs(tx, result, ct, result.name, outputs[value],
+                                   coordinate_system=coordinate_system,
+                                   picture=(pictures or {}).get(value),
+                                   intermediates_dir=intermediates_dir,
+                                   also=(also or {}).get(value, ()))
+            report = CaseReport(
+                version=__version__,
+                inputs=dict(inputs or {}, segment_name=result.name, label=value,
+                            neighbours=joint.report.neighbours),
+                output=OutputInfo(
+                    path=os.path.abspath(outputs[value]), format=bwfiles.extension(outputs[value]),
+                    coordinate_system=coordinate_system, n_vertices=int(surface.n_vertices),
+                    n_faces=int(surface.n_faces), picture=staged.picture,
+                    picture_error=staged.picture_error, intermediates=staged.intermediates,
+                    also=[os.path.abspath(p) for p in (also or {}).get(value, ())],
+                    report=os.path.abspath(report_path) if report_path else None),
+                coordinate_system=coordinate_system,
+                checks=result.report.checks,
+                distance_to_constraints_mm=DistanceSummary.of(result.distance_to_constraints),
+                parameters=params.to_dict(),
+                timings_s=CaseTimes(read=read_seconds, reconstruct=t_reconstruct,
+                                    render=staged.render_seconds, write=staged.write_seconds,
+                                    stages=result.report.timings),
+                pipeline=result.report,
+                pairs=[p for p in joint.pairs if result.name in (p.a, p.b)],
+            )
+            report.timings_s.total = read_seconds + time.perf_counter() - t_start
+            reports.append(report)
+        if report_path and reports:
+            if "{label}" in report_path:
+                for report in reports:
+                    write_report(report, fill_template(report_path, report.segment_name), tx)
+            elif len(reports) == 1 and not failures:
+                write_report(reports[0], report_path, tx)
+            else:
+                write_report({"tool": "BoneWatertight", "surfaces": reports,
+                              "failed": [{"segment": n, "error": str(e)} for n, e in failures],
+                              "pairs": joint.pairs, "joint": joint.report}, report_path, tx)
+    return JointRun(reports=reports, failures=failures, pairs=joint.pairs, joint=joint.report)
+
+
 def run_files(ct_path: str, seg_path: str, label, out: str, params: Parameters, *,
               ct_series: Optional[str] = None, case: Optional[str] = None,
               **kwargs) -> CaseReport:
