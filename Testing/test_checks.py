@@ -451,3 +451,14 @@ def test_coplanar_soup_matches_polygon_clipping(seed):
            if _clip_area(grid[f[i]], grid[f[j]]) > 1e-9}
     assert mine == ref
     assert 0 < len(ref) < len(f) * (len(f) - 1) // 2
+
+
+def test_mirror_symmetric_spheres_that_cross_only_through_edges():
+    """Two icospheres offset along a symmetry axis: every intersection segment ends on edges of
+    both faces (no edge pierces a face interior), yet the surfaces interpenetrate."""
+    va, fa = icosphere(3, radius=8.0)
+    vb, fb = icosphere(3, radius=8.0, centre=(0.0, 0.0, 9.6))
+    v, f = merge((va, fa), (vb, fb))
+    assert len(find_self_intersections(v, f)) > 20
+    touching = merge((va, fa), icosphere(3, radius=8.0, centre=(0.0, 0.0, 16.0)))
+    assert len(find_self_intersections(*touching)) == 0

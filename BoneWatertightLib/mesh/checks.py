@@ -455,6 +455,13 @@ def _narrow_phase(ctx, i, j):
             b = (a + 1) % 3
             h |= _edge_crosses_face(ctx, ci, a, b, dp[a], dp[b], cj, ~h)
             h |= _edge_crosses_face(ctx, cj, a, b, dq[a], dq[b], ci, ~h)
+        # Faces that cross only through their edges (every end of the intersection segment
+        # on an edge of both, as in mirror-symmetric meshes): their intervals on the line
+        # where the planes meet overlap with positive length.
+        rest = ~h & (n_shared[cross] == 0)
+        if rest.any():
+            h[rest] = _intervals_overlap(ctx, ci[rest], cj[rest], [d[rest] for d in dp],
+                                         [d[rest] for d in dq])
         hit[cross] = h
 
     tri, unit = ctx["tri"], ctx["unit"]
@@ -513,6 +520,40 @@ def _edge_crosses_face(ctx, f_edge, a, b, da, db, f_tri, todo):
         inside &= bary > _BARY_TOL
     out[idx] = inside
     return out
+
+
+def _intervals_overlap(ctx, fi, fj, dp, dq):
+    """Do non-coplanar faces fi and fj, each straddling the other's plane, share a segment of
+    positive length? (The intervals they cut on the line where their planes meet overlap.)
+
+    ``dp``: distances of fi's corners to fj's plane; ``dq``: fj's corners to fi's plane."""
+    dtol = ctx["dtol"]
+    unit = ctx["unit"]
+    line = np.cross(unit[fi], unit[fj])
+    line /= np.maximum(np.linalg.norm(line, axis=1, keepdims=True), 1e-300)
+    tri = ctx["tri"]
+
+    def interval(faces, dist):
+        proj = [np.einsum("ij,ij->i", tri[faces, c], line) for c in range(3)]
+        lo = np.full(len(faces), np.inf)
+        hi = np.full(len(faces), -np.inf)
+        for a in range(3):
+            on = np.abs(dist[a]) <= dtol
+            lo = np.where(on, np.minimum(lo, proj[a]), lo)
+            hi = np.where(on, np.maximum(hi, proj[a]), hi)
+            b = (a + 1) % 3
+            cut = ((dist[a] > dtol) & (dist[b] < -dtol)) | ((dist[a] < -dtol) & (dist[b] > dtol))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = dist[a] / (dist[a] - dist[b])
+            x = proj[a] + (proj[b] - proj[a]) * t
+            lo = np.where(cut, np.minimum(lo, x), lo)
+            hi = np.where(cut, np.maximum(hi, x), hi)
+        return lo, hi
+
+    lo_p, hi_p = interval(fi, dp)
+    lo_q, hi_q = interval(fj, dq)
+    overlap = np.minimum(hi_p, hi_q) - np.maximum(lo_p, lo_q)
+    return overlap > max(dtol, _BARY_TOL * ctx["size"])
 
 
 def _coplanar_overlap(P, Q, n, dtol):

@@ -249,7 +249,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         others = labelled[sl] & ~sub
         if others.any():
             d_other = ndimage.distance_transform_edt(~others) * spacing
-            contact[sl] |= sub & (d_other < r_contact)
+            contact[sl] |= sub & (d_other <= r_contact)
         if progress:
             progress(0.4 * (step + 1) / len(present), "segment regions")
     t_low = soft + LABEL_LEVEL_FRACTION * (ht - soft)

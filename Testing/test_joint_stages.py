@@ -1,0 +1,221 @@
+"""The stages of the joint-aware pipeline: caps at the image boundary, marker flooding,
+ownership at a joint, keeping surfaces apart, plausibility gates."""
+
+import numpy as np
+import pytest
+
+from BoneWatertightLib.mesh.cap import cap_plane
+from BoneWatertightLib.mesh.checks import check_surface
+from BoneWatertightLib.mesh.surface import enclosed_volume
+from BoneWatertightLib.stages import contacts, ownership, plausibility
+
+from test_checks import icosphere, torus
+
+
+# ---------------------------------------------------------------------------------- caps
+
+def _capped(v, f, planes, edge):
+    flags = np.zeros(len(f), np.uint8)
+    area = 0.0
+    for axis, side, position in planes:
+        v, f, flags, a = cap_plane(v, f, flags, axis, side, position, edge)
+        area += a
+    return v, f, flags, area
+
+
+def _edge(v, f):
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]]])
+    return float(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).mean())
+
+
+def test_cap_of_a_cut_sphere_is_flat_closed_and_has_the_disc_area():
+    v, f = icosphere(level=4, radius=10.0)
+    h = 4.0  # keep z <= 4: a disc of radius sqrt(100 - 16)
+    v2, f2, flags, area = _capped(v, f, [(2, +1, h)], _edge(v, f))
+    rep = check_surface(v2, f2)
+    assert rep.ok, rep.problems
+    assert rep.genus == 0
+    assert v2[:, 2].max() <= h + 1e-9
+    cap_v = np.unique(f2[flags == 1])
+    assert np.allclose(v2[cap_v, 2], h)
+    assert area == pytest.approx(np.pi * (100 - h * h), rel=0.02)
+    # the cap's faces point outward (+z) and the volume is the spherical segment's
+    n = np.cross(v2[f2[flags == 1, 1]] - v2[f2[flags == 1, 0]],
+                 v2[f2[flags == 1, 2]] - v2[f2[flags == 1, 0]])
+    assert (n[:, 2] > 0).all()
+    expect = np.pi * (10 + h) ** 2 * (3 * 10 - (10 + h)) / 3  # cap of height 10 + h
+    assert enclosed_volume(v2, f2) == pytest.approx(expect, rel=0.02)
+
+
+def test_two_planes_cut_a_corner():
+    v, f = icosphere(level=4, radius=10.0)
+    v2, f2, flags, area = _capped(v, f, [(2, +1, 5.0), (0, -1, -3.0)], _edge(v, f))
+    rep = check_surface(v2, f2)
+    assert rep.ok, rep.problems
+    assert v2[:, 2].max() <= 5.0 + 1e-9 and v2[:, 0].min() >= -3.0 - 1e-9
+    assert flags.sum() > 0 and area > 0
+
+
+def test_cutting_a_ring_gives_an_annulus_with_a_hole():
+    v, f = torus(major=6.0, minor=2.0, nu=80, nv=40)
+    # a plane through the ring's axis-parallel side: x <= 6 cuts both sides of the tube? No:
+    # z <= 1 cuts the tube across its height everywhere, leaving an annulus-shaped cap.
+    v2, f2, flags, area = _capped(v, f, [(2, +1, 1.0)], _edge(v, f))
+    rep = check_surface(v2, f2)
+    assert rep.ok, rep.problems
+    assert rep.genus == 1  # the hole of the annulus is kept
+    outer = 6.0 + np.sqrt(3.0)
+    inner = 6.0 - np.sqrt(3.0)
+    assert area == pytest.approx(np.pi * (outer ** 2 - inner ** 2), rel=0.03)
+
+
+def test_a_plane_that_misses_the_surface_changes_nothing():
+    v, f = icosphere(level=2, radius=5.0)
+    v2, f2, flags, area = _capped(v, f, [(0, +1, 50.0)], _edge(v, f))
+    assert area == 0.0 and flags.sum() == 0 and len(f2) == len(f)
+
+
+# ---------------------------------------------------------------------------------- flooding
+
+def test_flood_splits_a_plateau_midway_and_follows_a_ridge():
+    shape = (1, 1, 41)
+    markers = np.zeros(shape, np.uint16)
+    markers[0, 0, 0] = 1
+    markers[0, 0, 40] = 2
+    mask = np.ones(shape, bool)
+    flat = np.zeros(shape, np.int32)
+    ws = ownership.flood_from_markers(markers, flat, mask)
+    assert (ws[0, 0, :20] == 1).all() and (ws[0, 0, 21:] == 2).all()
+    ridge = flat.copy()
+    ridge[0, 0, 10] = 3  # a valley (the joint space) near marker 1
+    ws = ownership.flood_from_markers(markers, ridge, mask)
+    assert (ws[0, 0, :10] == 1).all() and (ws[0, 0, 11:] == 2).all()
+    # voxels outside the mask are never claimed
+    mask[0, 0, 20] = False
+    ws = ownership.flood_from_markers(markers, flat, mask)
+    assert ws[0, 0, 20] == 0
+
+
+def _two_blocks(shift_label=3, gap=2, soft=40.0):
+    """A CT of two bone blocks (cortex 1200, inside 300) along x with a dark joint space of
+    `gap` voxels between them; labels wrong at the joint: block 1's last `shift_label` voxels
+    are labelled as block 2."""
+    shape = (24, 24, 60)
+    ct = np.full(shape, soft, np.float32)
+    ct[4:20, 4:20, 5:28] = 1200.0
+    ct[6:18, 6:18, 7:26] = 300.0
+    ct[4:20, 4:20, 28 + gap:55] = 1200.0
+    ct[6:18, 6:18, 30 + gap:53] = 300.0
+    ct[4:20, 4:20, 28:28 + gap] = 120.0  # cartilage in the joint space
+    labels = np.zeros(shape, np.uint16)
+    labels[4:20, 4:20, 5:28 - shift_label] = 1
+    labels[4:20, 4:20, 28 - shift_label:55] = 2
+    return ct, labels
+
+
+def test_ownership_split_follows_the_joint_space_not_the_wrong_labels():
+    ct, labels = _two_blocks(shift_label=2, gap=2)
+    own = ownership.compute_ownership(ct, labels, 2, 1.0, h0=400.0, ht=200.0, theta_max=2500.0,
+                                      soft=40.0, contrast=1160.0, coarseness=1.0, band_mm=3.0)
+    row = own.owner[12, 12]
+    # block 1 spans x 5..27 on the CT; its last 2 voxels carry label 2 but the joint space
+    # (x 28, 29) is where the split lies
+    assert (row[6:28] == 1).all(), row[20:32]
+    assert (row[30:54] == 2).all(), row[20:32]
+    contact = [c for c in own.contacts if (c["a"], c["b"]) == (1, 2)]
+    assert not contact or contact[0]["valley_seen_fraction"] > 0.5
+
+
+def test_unlabelled_bone_beyond_a_joint_stays_a_neighbour():
+    ct, labels = _two_blocks(shift_label=0, gap=2)
+    labels[labels == 2] = 0  # the neighbour is not labelled
+    own = ownership.compute_ownership(ct, labels, 1, 1.0, h0=400.0, ht=200.0, theta_max=2500.0,
+                                      soft=40.0, contrast=1160.0, coarseness=1.0, band_mm=3.0)
+    row = own.owner[12, 12]
+    assert (row[6:28] == 1).all()
+    assert (row[31:54] != 1).all()  # never bone 1 across the joint space
+
+
+# ---------------------------------------------------------------------------------- contacts
+
+def _grid_sphere(radius, centre):
+    v, f = icosphere(level=3, radius=radius, centre=centre)
+    return v, f
+
+
+def test_resolve_contacts_separates_overlapping_surfaces_by_the_gap():
+    shape = (40, 40, 60)
+    d = 1.0
+    a = list(_grid_sphere(8.0, (20.0, 20.0, 21.0)))
+    b = list(_grid_sphere(8.0, (20.0, 20.0, 36.0)))  # 1 mm overlap
+    before = contacts.pair_report(a[0], a[1], b[0], b[1])
+    assert before["crossing_face_pairs"] > 0
+    surfaces = {1: [a[0], a[1]], 2: [b[0], b[1]]}
+    contacts.resolve_contacts(surfaces, {}, shape, d, 0.3, passes=4)
+    after = contacts.pair_report(surfaces[1][0], a[1], surfaces[2][0], b[1])
+    assert after["crossing_face_pairs"] == 0 and after["a_inside_b"] == 0
+    assert after["min_gap_mm"] >= 0.3 - 1e-6
+    for k in (1, 2):
+        assert check_surface(surfaces[k][0], surfaces[k][1]).ok
+    # far from the joint nothing moved
+    far = a[0][:, 2] < 15.0
+    assert np.allclose(surfaces[1][0][far], a[0][far], atol=0.05)
+
+
+def test_pair_report_of_separate_spheres():
+    a = _grid_sphere(5.0, (0.0, 0.0, 0.0))
+    b = _grid_sphere(5.0, (0.0, 0.0, 10.5))
+    rep = contacts.pair_report(a[0], a[1], b[0], b[1])
+    assert rep["crossing_face_pairs"] == 0 and rep["a_inside_b"] == 0 and rep["b_inside_a"] == 0
+    assert rep["min_gap_mm"] == pytest.approx(0.5, abs=0.15)
+
+
+# ---------------------------------------------------------------------------------- plausibility
+
+def _ball(shape, centre, r):
+    z, y, x = np.indices(shape)
+    return (x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2 <= r * r
+
+
+def _measure(inside, label, **kw):
+    verts = np.argwhere(inside & ~np.pad(inside, 1)[1:-1, 1:-1, 2:])[:, ::-1].astype(float)
+    none = np.zeros(label.shape, bool)
+    p = plausibility.measure(inside, verts, label, none, kw.pop("cores", none),
+                             np.ones(label.shape, bool), 1.0,
+                             volume_mm3=float(inside.sum()), coarseness=2.0, band_mm=3.0,
+                             edge_support=kw.pop("edge", 0.95))
+    return plausibility.gate(p, coarseness=2.0, band_mm=3.0, name="bone")
+
+
+def test_plausible_surface_passes():
+    shape = (40, 40, 40)
+    label = _ball(shape, (20, 20, 20), 10)
+    p = _measure(_ball(shape, (20, 20, 20), 10.5), label)
+    assert p.ok, p.problems
+    assert p.volume_ratio == pytest.approx(1.15, abs=0.1)
+
+
+def test_a_missing_half_fails():
+    shape = (40, 40, 40)
+    label = _ball(shape, (20, 20, 20), 10)
+    half = label.copy()
+    half[:, :, :20] = False
+    p = _measure(half, label)
+    assert not p.ok and "missing" in p.problems[0]
+
+
+def test_growing_into_a_neighbour_fails():
+    shape = (40, 40, 70)
+    label = _ball(shape, (20, 20, 20), 10)
+    fused = label | _ball(shape, (45, 20, 20), 10)
+    cores = _ball(shape, (45, 20, 20), 6)
+    p = _measure(fused, label, cores=cores)
+    text = " ".join(p.problems)
+    assert "outside the segment" in text and "core" in text
+
+
+def test_no_ct_edge_fails():
+    shape = (40, 40, 40)
+    label = _ball(shape, (20, 20, 20), 10)
+    p = _measure(label, label, edge=0.1)
+    assert not p.ok and "edge" in " ".join(p.problems)
