@@ -736,7 +736,15 @@ def _cup_rough(model, rng, start, spacing, size) -> np.ndarray:
         return out
     p = _local_points(start, spacing, i0, i1)
     wob = _PlaneWaves(rng, 10, (8.0, 30.0))
-    m = model.cup_sdf(p) + 0.2 * h * wob(p) + 0.05 * h < 0
+    # k points spread over each voxel's z extent, cup if any is inside: centre sampling alone
+    # would cut the shell apart where it lies flat on a grid whose z spacing exceeds it.
+    k = max(1, int(math.ceil(spacing[2] / (0.5 * model.cup_t))))
+    m = np.zeros(len(p), bool)
+    for dz in ((np.arange(k) + 0.5) / k - 0.5) * spacing[2]:
+        q = p + np.array([0.0, 0.0, dz])
+        m |= model.cup_sdf(q) + 0.2 * h * wob(q) + 0.05 * h < 0
+    # Never on the femur (as the femur's mask is kept off the cup).
+    m &= model.bone_sdf(p) > 0.5 * h
     inside = np.flatnonzero(m)
     for c in p[rng.choice(inside, size=min(2, len(inside)), replace=False)]:
         m &= _sphere(p, c, 1.0 * h) > 0
@@ -764,7 +772,9 @@ def labels_rough(phantom: Phantom) -> sitk.Image:
         shrink, holes, islands, a missing slab, all scaled by the mask spacing's *max*);
         2 = cup: the cup's SDF + 0.2 h * wobble + 0.05 h < 0 with h the mask's *in-plane*
         spacing (the femur's scales, 0.6 / 0.3 * max spacing, would cut the 2-5 mm thin shell
-        apart), two holes and one island of radius h. Label 2 only where label 1 is not, so
+        apart) at any of ceil(z spacing / (cup thickness / 2)) points spread over the voxel's
+        z extent (so thick slices do not cut it apart either), voxel centres at least h / 2
+        off the femur, two holes and one island of radius h. Label 2 only where label 1 is not, so
         the labels never overlap. Without a neighbour (``neighbour=False``) there is no label 2.
         Deterministic: the cup's random stream is seeded by (seed, 2).
     """
@@ -875,26 +885,9 @@ def resample_nearest(labels: sitk.Image, reference: sitk.Image) -> sitk.Image:
 
 # ---------------------------------------------------------------------------- entry point
 
-def make_phantom(case: str = "easy", seed: int = 0, **overrides) -> Phantom:
-    """A synthetic CT, a rough segment and the ground-truth surfaces (see module doc).
-
-    Parameters
-    ----------
-    case : str
-        A key of :data:`CASES`.
-    seed : int
-        Seeds pores, foramina, HU fields, noise and the rough mask; with
-        ``vary_geometry=True`` also the parts' sizes and positions.
-    **overrides
-        Any key of ``_BASE`` (e.g. ``gap=1.5``, ``slice_spacing=2.0``,
-        ``low_density_end="proximal"``); unknown keys raise ValueError.
-
-    Returns
-    -------
-    Phantom
-        ct (int16, array (z, y, x)), mask, truth, neighbour_truth (None without the cup),
-        info.
-    """
+def _build(case: str, seed: int, overrides: dict):
+    """The case's parameters, main random stream and model with its frame, CT size and
+    spacing (the model has drawn its fields and pores from the stream; nothing else has)."""
     if case not in CASES:
         raise ValueError(f"Unknown phantom case {case!r}; choose one of {', '.join(CASES)}")
     cfg = dict(_BASE)
@@ -928,6 +921,64 @@ def make_phantom(case: str = "easy", seed: int = 0, **overrides) -> Phantom:
     model.local0 = fov_lo
     model.direction = _rotation(cfg["direction_angles_deg"])
     model.origin = np.array(cfg["origin"], float)
+    return cfg, rng, model, size, spacing
+
+
+def _truths(model, cfg):
+    """(truth, neighbour_truth or None, truth grid step h, smallest gap or None)."""
+    h = cfg["truth_grid"] or float(np.clip(0.5 * cfg["scale"], 0.15, 0.5))
+    lo_b, hi_b = model.bone_bbox()
+    v, f = _sdf_mesh(model.bone_sdf, lo_b, hi_b, h)
+    truth = Surface(model.to_physical(v), f, "LPS")
+    neighbour = None
+    gap_min = None
+    if cfg["neighbour"]:
+        lo_c, hi_c = model.cup_bbox()
+        v, f = _sdf_mesh(model.cup_sdf, lo_c, hi_c, h)
+        neighbour = Surface(model.to_physical(v), f, "LPS")
+        # bone_sdf is 1-Lipschitz (a lower bound of the distance; exact around the head).
+        gap_min = float(model.bone_sdf(v).min())
+    return truth, neighbour, h, gap_min
+
+
+def make_truth(case: str = "easy", seed: int = 0, **overrides):
+    """The ground truth of a case without its CT and mask (the same meshes as
+    :func:`make_phantom` gives, in a fraction of the time).
+
+    Returns
+    -------
+    (truth, neighbour_truth, info)
+        Surfaces in physical LPS (neighbour_truth None without the cup); info has the case
+        parameters, truth_grid_mm, gap_min_mm and ``_model``.
+    """
+    cfg, _, model, _, _ = _build(case, seed, overrides)
+    truth, neighbour, h, gap_min = _truths(model, cfg)
+    info = dict(cfg)
+    info.update(case=case, seed=seed, truth_grid_mm=h, gap_min_mm=gap_min, _model=model)
+    return truth, neighbour, info
+
+
+def make_phantom(case: str = "easy", seed: int = 0, **overrides) -> Phantom:
+    """A synthetic CT, a rough segment and the ground-truth surfaces (see module doc).
+
+    Parameters
+    ----------
+    case : str
+        A key of :data:`CASES`.
+    seed : int
+        Seeds pores, foramina, HU fields, noise and the rough mask; with
+        ``vary_geometry=True`` also the parts' sizes and positions.
+    **overrides
+        Any key of ``_BASE`` (e.g. ``gap=1.5``, ``slice_spacing=2.0``,
+        ``low_density_end="proximal"``); unknown keys raise ValueError.
+
+    Returns
+    -------
+    Phantom
+        ct (int16, array (z, y, x)), mask, truth, neighbour_truth (None without the cup),
+        info.
+    """
+    cfg, rng, model, size, spacing = _build(case, seed, overrides)
 
     arr = _form_ct(model, cfg, rng, tuple(size), spacing)
     ct = sitk.GetImageFromArray(arr)
@@ -937,21 +988,21 @@ def make_phantom(case: str = "easy", seed: int = 0, **overrides) -> Phantom:
 
     mask = _rough_mask(model, cfg, rng, size, spacing)
 
-    h = cfg["truth_grid"] or float(np.clip(0.5 * s, 0.15, 0.5))
+    truth, neighbour, h, gap_min = _truths(model, cfg)
     lo_b, hi_b = model.bone_bbox()
-    v, f = _sdf_mesh(model.bone_sdf, lo_b, hi_b, h)
-    truth = Surface(model.to_physical(v), f, "LPS")
-    neighbour = None
-    if cfg["neighbour"]:
-        lo_c, hi_c = model.cup_bbox()
-        v, f = _sdf_mesh(model.cup_sdf, lo_c, hi_c, h)
-        neighbour = Surface(model.to_physical(v), f, "LPS")
 
-    gap_min = None
-    if neighbour is not None:
-        # bone_sdf is 1-Lipschitz (a lower bound of the distance; exact around the head).
-        gap_min = float(model.bone_sdf(model.to_local(neighbour.vertices)).min())
-
+    hu = dict(cortical="1220-1580", trabecular="190-490 (+80 under the cortex)",
+              marrow="20-80", soft_tissue=40, fat=-100, air=-1000,
+              cartilage=f"{cfg['cartilage_hu'] - 30:g}-{cfg['cartilage_hu'] + 30:g}")
+    if cfg["low_density_end"] is not None:
+        lt, lv = cfg["low_trab_hu"], cfg["low_trab_var"]
+        hu["low_density_end"] = cfg["low_density_end"]
+        hu["low_density_trabecular"] = f"{lt - lv:g}-{lt + lv:g} (+{cfg['low_subcortical_hu']:g} under the cortex)"
+        if cfg["low_cortex_hu"] is not None:
+            lc, lcv = cfg["low_cortex_hu"], cfg["low_cortex_var"]
+            hu["low_density_cortical"] = f"{lc - lcv:g}-{lc + lcv:g}"
+    if len(model.cortex_holes):
+        hu["cortex_holes"] = f"{cfg['cortex_hole_hu'] - 20:g}-{cfg['cortex_hole_hu'] + 20:g}"
     info = dict(cfg)
     info.update(
         case=case, seed=seed, gap_min_mm=gap_min,
@@ -959,13 +1010,13 @@ def make_phantom(case: str = "easy", seed: int = 0, **overrides) -> Phantom:
         bone_length_mm=float(hi_b[2] - lo_b[2]),
         truth_grid_mm=h,
         truth_note="flying edges at truth_grid_mm, vertices Newton-projected onto the SDF zero set",
-        truth_excludes="pores, foramina and the lesion (truth = outer envelope of the healthy bone)",
+        truth_excludes="pores, foramina, the lesion, low density and cortical holes "
+                       "(truth = outer envelope of the healthy bone)",
         ct_size=[int(x) for x in size], ct_spacing=spacing.tolist(),
         mask_spacing=list(mask.GetSpacing()),
         n_pores=int(len(model.pores)), n_foramina=len(model.foramina),
-        hu=dict(cortical="1220-1580", trabecular="190-490 (+80 under the cortex)",
-                marrow="20-80", soft_tissue=40, fat=-100, air=-1000,
-                cartilage=f"{cfg['cartilage_hu'] - 30:g}-{cfg['cartilage_hu'] + 30:g}"),
+        n_cortex_holes=int(len(model.cortex_holes)),
+        hu=hu,
         _model=model,
     )
     return Phantom(ct=ct, mask=mask, truth=truth, neighbour_truth=neighbour, info=info)
