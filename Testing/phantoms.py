@@ -107,10 +107,10 @@ CASES: dict[str, dict] = {
     # Cases where the paper's HT step matters (issue 14): bone that W_H0 = [H0, theta_max]
     # misses and W_HT = [HT, theta_max] holds; the truth is the same outer envelope.
     # Osteoporotic proximal end (head, neck, trochanters): trabecular 120-200 HU, the 0.8 mm
-    # cortex at 270 +- 20 HU (after the blur 150-290 HU: all below H0 = 300, above HT = 150).
+    # cortex at 280 +- 15 HU (after the blur 150-290 HU: below H0 = 300, above HT = 150).
     "osteo": dict(scale=0.6, pixel=0.8, slice_spacing=1.0, gap=3.0, noise=20.0,
                   low_density_end="proximal", low_trab_hu=160.0, low_trab_var=40.0,
-                  low_subcortical_hu=0.0, low_cortex_hu=270.0, low_cortex_var=20.0),
+                  low_subcortical_hu=0.0, low_cortex_hu=280.0, low_cortex_var=15.0),
     # Thin end cortex at both ends (0.4 mm, 700 +- 60 HU, over trabecular bone at 150-210 HU)
     # under a soft kernel (PSF sigma 0.7 mm) and 2 mm thick overlapping slices: its blurred
     # peak lies mostly below H0 (W_H0 patchy at the ends), above HT everywhere.

@@ -1,4 +1,7 @@
-"""Synthetic phantoms: geometry, HU model, frames, reproducibility."""
+"""Synthetic phantoms: geometry, HU model, frames, reproducibility, the cases where the
+paper's HT step matters and the geometry variation."""
+
+import time
 
 import numpy as np
 import pytest
@@ -6,7 +9,7 @@ import SimpleITK as sitk
 
 from BoneWatertightLib.mesh.checks import check_surface
 from BoneWatertightLib.mesh import enclosed_volume
-from phantoms import CASES, make_phantom
+from phantoms import CASES, make_phantom, make_truth
 
 
 @pytest.fixture(scope="module")
@@ -149,3 +152,135 @@ def test_unknown_case_and_parameter():
         make_phantom("nope")
     with pytest.raises(ValueError):
         make_phantom("tiny", not_a_parameter=1)
+
+
+# ----------------------------------------------------------------- cases where HT matters
+
+H0, HT = 300.0, 150.0
+
+
+def _ct_samples(ph):
+    """Local positions (n, 3) and HU (n,) of the CT voxel centres in the bone's bounding box."""
+    m = ph.info["_model"]
+    arr = sitk.GetArrayViewFromImage(ph.ct)
+    sp = np.array(ph.ct.GetSpacing())
+    lo, hi = m.bone_bbox()
+    top = np.array(arr.shape[::-1]) - 1
+    i0 = np.clip(np.floor((lo - m.local0) / sp).astype(int), 0, top)
+    i1 = np.clip(np.ceil((hi - m.local0) / sp).astype(int), 0, top)
+    Z, Y, X = np.meshgrid(*[np.arange(i0[k], i1[k] + 1) for k in (2, 1, 0)], indexing="ij")
+    idx = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+    return m.local0 + idx * sp, arr[idx[:, 2], idx[:, 1], idx[:, 0]].astype(float)
+
+
+def _cortex_bands(ph):
+    m = ph.info["_model"]
+    p, hu = _ct_samples(ph)
+    d, t = m.bone_sdf(p), m.cortex_thickness(p)
+    band = (d < 0) & (d > -t)
+    head = np.linalg.norm(p - m.head_c, axis=1) < m.head_r + 0.5
+    ends = t < m.t_end + 1e-6
+    return dict(head=hu[band & head], ends=hu[band & ends], shaft=hu[band & ~ends & (t > m.t_shaft - 0.05)])
+
+
+def _made(case):
+    # A coarser truth mesh only to be quick: the CT does not depend on truth_grid.
+    t = time.perf_counter()
+    ph = make_phantom(case, seed=0, truth_grid=0.6)
+    print(f"\n{case}: made in {time.perf_counter() - t:.1f} s")
+    return ph
+
+
+def test_ht_cases_listed_with_the_easy_geometry():
+    for case in ("osteo", "thin_cortex", "cortex_holes"):
+        assert case in CASES and CASES[case]["scale"] == 0.6
+    # Same analytic truth (the outer envelope) as `easy`: only the HU model differs.
+    ref, _, _ = make_truth("easy", truth_grid=0.6)
+    for case in ("osteo", "thin_cortex", "cortex_holes"):
+        truth, _, _ = make_truth(case, truth_grid=0.6)
+        np.testing.assert_array_equal(truth.vertices, ref.vertices)
+
+
+def test_osteoporotic_head_below_h0_above_ht():
+    ph = _made("osteo")
+    b = _cortex_bands(ph)
+    q = {k: np.percentile(v, [1, 50, 99]) for k, v in b.items()}
+    print({k: np.round(v).tolist() for k, v in q.items()})
+    # The head's cortex is missed by W_H0 = [300, ...] and held by W_HT = [150, ...].
+    assert q["head"][2] < H0
+    assert q["head"][0] > HT - 10 and (b["head"] >= HT).mean() > 0.98
+    # The shaft (not osteoporotic) stays dense.
+    assert q["shaft"][1] > 800
+    # Its trabecular bone is 120-200 HU (blurred), all below H0.
+    m = ph.info["_model"]
+    p, hu = _ct_samples(ph)
+    deep = (m.bone_sdf(p) < -m.t_end - 1.5) & (np.linalg.norm(p - m.head_c, axis=1) < m.head_r)
+    assert np.percentile(hu[deep], 99) < H0 and 110 < np.median(hu[deep]) < 210
+
+
+def test_thin_cortex_blurred_below_h0():
+    ph = _made("thin_cortex")
+    assert ph.info["cortex_end"] == pytest.approx(0.4)
+    b = _cortex_bands(ph)
+    below = {k: float((v < H0).mean()) for k, v in b.items()}
+    print({k: round(v, 3) for k, v in below.items()}, {k: np.round(np.percentile(v, [1, 50, 99])).tolist() for k, v in b.items()})
+    assert below["ends"] > 0.6 and below["head"] > 0.5     # W_H0 patchy at the ends
+    assert (b["ends"] >= HT).mean() > 0.98                  # W_HT holds them
+    assert below["shaft"] < 0.02 and np.median(b["shaft"]) > 800
+
+
+def test_cortex_holes_break_w_h0_not_w_ht():
+    ph = _made("cortex_holes")
+    m = ph.info["_model"]
+    assert len(m.cortex_holes) == ph.info["cortex_holes"] == ph.info["n_cortex_holes"] == 14
+    p, hu = _ct_samples(ph)
+    d, t = m.bone_sdf(p), m.cortex_thickness(p)
+    band = (d < 0) & (d > -t)
+    from scipy.spatial import cKDTree
+    dist, _ = cKDTree(m.cortex_holes).query(p)
+    r = ph.info["cortex_hole_mm"]
+    inner = band & (dist < r - 0.5)  # the holes' cortex, clear of the blurred rim
+    away = band & (dist > r + 2.0)
+    print(f"hole cortex n={inner.sum()} <H0 {(hu[inner] < H0).mean():.3f} >=HT {(hu[inner] >= HT).mean():.3f}; "
+          f"intact cortex median {np.median(hu[away]):.0f}")
+    assert (hu[inner] < H0).mean() > 0.8
+    assert (hu[inner] >= HT).mean() > 0.9
+    assert np.percentile(hu[away], 5) > H0 + 200
+    # Every hole is a window: at its centre's mid-cortex the CT is below H0.
+    for c in m.cortex_holes:
+        near = inner & (dist < 1.0)
+        assert np.median(hu[near & (np.linalg.norm(p - c, axis=1) < 1.0)]) < H0
+
+
+def test_new_options_default_off_and_validated():
+    for k in ("gap_exact", "vary_geometry", "low_density_end", "low_cortex_hu", "cortex_holes"):
+        assert not CASES["tiny"].get(k) and not CASES["femur"].get(k)
+    with pytest.raises(ValueError):
+        make_phantom("tiny", low_density_end="middle")
+
+
+# ----------------------------------------------------------------- geometry variation
+
+def test_vary_geometry_perturbs_the_parts_by_the_seed():
+    base, _, bi = make_truth("tiny", seed=0, truth_grid=0.4)
+    m0 = bi["_model"]
+    # Without the option the geometry never depends on the seed.
+    same, _, _ = make_truth("tiny", seed=3, truth_grid=0.4)
+    np.testing.assert_array_equal(same.vertices, base.vertices)
+    vols, heads = [], []
+    for seed in (0, 1, 2):
+        truth, cup, info = make_truth("tiny", seed=seed, vary_geometry=True, truth_grid=0.4)
+        m = info["_model"]
+        rep = check_surface(truth.vertices, truth.faces)
+        assert rep.ok and rep.genus == 0, rep.problems
+        assert check_surface(cup.vertices, cup.faces).ok
+        assert abs(m.head_r / m0.head_r - 1) <= 0.05 + 1e-12
+        assert np.all(np.abs(m.head_c - m0.head_c) <= 0.05 * 2 * m.head_r + 1e-9)
+        assert info["gap_min_mm"] == pytest.approx(bi["gap_min_mm"], abs=0.02)  # the joint kept
+        vols.append(enclosed_volume(truth.vertices, truth.faces))
+        heads.append(m.head_r)
+        again, _, _ = make_truth("tiny", seed=seed, vary_geometry=True, truth_grid=0.4)
+        np.testing.assert_array_equal(again.vertices, truth.vertices)
+    v0 = enclosed_volume(base.vertices, base.faces)
+    assert len(set(np.round(heads, 9))) == 3
+    assert all(abs(v / v0 - 1) < 0.2 for v in vols) and np.ptp(vols) / v0 > 0.01
