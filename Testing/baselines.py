@@ -10,41 +10,61 @@
   threshold mask, normals from the gradient of the smoothed CT.
 * :func:`closing_wrap` - morphological closing with a ball of ``gap_mm`` radius, hole
   filling, marching cubes and light smoothing (like a "wrap" with a gap-closing distance).
+* :func:`segment_closed_surface` - the segment itself through Slicer's closed-surface
+  conversion: what a user gets today from an AI segment (one label of a label map).
 
-All three work on the pipeline's working grid (:func:`prepare.prepare`: crop to the segment
-+ margin, B-spline resample to the isotropic spacing), so differences come from the method,
-not the grid. Each returns a :class:`Surface` in physical LPS with faces oriented so the
-enclosed volume is positive, and never checks topology: the benchmark reports the checks of
-every method.
+The first three work on the pipeline's working grid (:func:`prepare.prepare`: crop to the
+segment + margin, B-spline resample to the isotropic spacing), so differences come from the
+method, not the grid. :func:`segment_closed_surface` works on the label map's own grid and
+needs nothing of the pipeline. Each returns a :class:`Surface` in physical LPS with faces
+oriented so the enclosed volume is positive, and never checks topology: the benchmark
+reports the checks of every method.
 """
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 from scipy import ndimage
 
 from BoneWatertightLib.mesh import Surface, enclosed_volume, from_polydata
-from BoneWatertightLib.params import Parameters
-from BoneWatertightLib.stages.prepare import Prepared, prepare
+
+# The pipeline's parameters and preparation are imported where the first three baselines use
+# them, so that segment_closed_surface (and importing this module) does not depend on them.
+if TYPE_CHECKING:  # pragma: no cover
+    from BoneWatertightLib.params import Parameters
+    from BoneWatertightLib.stages.prepare import Prepared
 
 # Slicer's default closed-surface smoothing factor and the iteration count it uses.
 SLICER_SMOOTHING_FACTOR = 0.5
 SLICER_SINC_ITERATIONS = 20
+# The paper's target threshold: what the threshold baselines use when the parameters leave HT
+# to the pipeline's per-case estimate (ht=None), as they did before that estimate existed.
+PAPER_HT = 150.0
 
 
-def _prepared(ct, mask, params: Optional[Parameters]) -> Prepared:
-    params = (params or Parameters()).validate()
+def _params(params: Optional["Parameters"]) -> "Parameters":
+    from BoneWatertightLib.params import Parameters
+
+    return (params or Parameters()).validate()
+
+
+def _prepared(ct, mask, params: Optional["Parameters"]) -> "Prepared":
+    from BoneWatertightLib.stages.prepare import prepare
+
+    params = _params(params)
     return prepare(ct, mask, spacing=params.spacing, margin=params.margin,
                    max_memory_gb=params.max_memory_gb)
 
 
 def threshold_mask(prep: Prepared, params: Parameters) -> np.ndarray:
     """Voxels in [HT, theta_max] in the connected components that touch the rough segment
-    dilated by params.segment_dilation (so a missing chunk of the segment is still found)."""
+    dilated by params.segment_dilation (so a missing chunk of the segment is still found).
+    HT = params.ht, or :data:`PAPER_HT` when it is None (the pipeline's "auto")."""
     ct = prep.ct
-    m = (ct >= params.ht) & (ct <= params.theta_max)
+    ht = PAPER_HT if params.ht is None else params.ht
+    m = (ct >= ht) & (ct <= params.theta_max)
     r = max(1, int(round(params.segment_dilation / prep.grid.spacing)))
     near = _dilate_mm(prep.segment, r)
     lab, n = ndimage.label(m)
@@ -128,7 +148,7 @@ def labelmap_to_surface(mask_zyx: np.ndarray, spacing: float,
 def threshold_marching_cubes(ct, mask, params: Optional[Parameters] = None,
                              smoothing_factor: float = SLICER_SMOOTHING_FACTOR) -> Surface:
     """Threshold [HT, theta_max] + connected components + Slicer's closed-surface conversion."""
-    params = (params or Parameters()).validate()
+    params = _params(params)
     prep = _prepared(ct, mask, params)
     m = threshold_mask(prep, params)
     return _to_surface(labelmap_to_surface(m, prep.grid.spacing, smoothing_factor), prep)
@@ -140,7 +160,7 @@ def direct_poisson(ct, mask, params: Optional[Parameters] = None, depth: int = 9
     with normals = -gradient of the Gaussian-smoothed CT."""
     import open3d as o3d  # heavy; only this baseline needs it
 
-    params = (params or Parameters()).validate()
+    params = _params(params)
     prep = _prepared(ct, mask, params)
     d = prep.grid.spacing
     m = threshold_mask(prep, params)
@@ -180,7 +200,7 @@ def direct_poisson(ct, mask, params: Optional[Parameters] = None, depth: int = 9
 def closing_wrap(ct, mask, params: Optional[Parameters] = None, gap_mm: float = 2.0,
                  smoothing_factor: float = 0.25) -> Surface:
     """Closing with a ball of radius gap_mm, hole filling, marching cubes, light smoothing."""
-    params = (params or Parameters()).validate()
+    params = _params(params)
     prep = _prepared(ct, mask, params)
     d = prep.grid.spacing
     m = threshold_mask(prep, params)
@@ -190,6 +210,65 @@ def closing_wrap(ct, mask, params: Optional[Parameters] = None, gap_mm: float = 
     closed = _erode_mm(_dilate_mm(mp, r), r)[pad:-pad, pad:-pad, pad:-pad] | m
     closed = ndimage.binary_fill_holes(closed)
     return _to_surface(labelmap_to_surface(closed, d, smoothing_factor), prep)
+
+
+def segment_closed_surface(labels, value: int = 1,
+                           smoothing: float = SLICER_SMOOTHING_FACTOR) -> Surface:
+    """The segment itself as 3D Slicer shows it: one label of a label map through Slicer's
+    binary-labelmap -> closed-surface conversion, in physical LPS.
+
+    As Slicer's conversion rule does: the voxels equal to ``value`` in index space (IJK,
+    padded by one voxel), discrete flying edges at 1, windowed-sinc smoothing with pass band
+    10^(-4 * smoothing) (Slicer's default smoothing factor 0.5 -> 0.01; 20 iterations,
+    normalised coordinates, non-manifold smoothing on, boundary and feature-edge smoothing
+    off), no decimation; then index -> physical with the image's origin, spacing and
+    direction. (The smoothing's umbrella weights are uniform, so smoothing in IJK and in
+    millimetres give the same surface even on anisotropic grids.) Nothing of the pipeline is
+    used: no crop, no resampling, no CT.
+
+    Parameters
+    ----------
+    labels : SimpleITK.Image
+        3-D integer label map (array (z, y, x)), any spacing, origin and direction.
+    value : int
+        The label to convert.
+    smoothing : float
+        Slicer's smoothing factor (0 = none: the stair-stepped flying-edges surface).
+
+    Returns
+    -------
+    Surface
+        Physical LPS mm, faces counter-clockwise seen from outside (enclosed volume > 0);
+        empty (0 faces) when the label is absent. Not checked: the conversion gives a closed
+        surface but neither manifoldness nor freedom from self-intersections is guaranteed
+        (see Testing/test_baselines.py for what it gives on the phantoms).
+    """
+    import SimpleITK as sitk
+    from vtk.util import numpy_support as ns
+
+    arr = sitk.GetArrayViewFromImage(labels)
+    if arr.ndim != 3:
+        raise ValueError(f"segment_closed_surface needs a 3-D label map, got {arr.ndim}-D")
+    sel = np.asarray(arr) == value
+    empty = Surface(np.zeros((0, 3)), np.zeros((0, 3), np.int64), "LPS")
+    if not sel.any():
+        return empty
+    # Crop to the label's bounding box (the surface is the same; the padding closes it where
+    # the label touches the image border, as Slicer's padding does).
+    nz = [np.flatnonzero(sel.any(axis=a)) for a in ((1, 2), (0, 2), (0, 1))]
+    lo = np.array([nz[2][0], nz[1][0], nz[0][0]])  # (i, j, k)
+    hi = np.array([nz[2][-1], nz[1][-1], nz[0][-1]]) + 1
+    crop = sel[lo[2]:hi[2], lo[1]:hi[1], lo[0]:hi[0]]
+    poly = labelmap_to_surface(crop, 1.0, smoothing)  # vertex coordinates = crop indices
+    if not poly.GetNumberOfPolys():
+        return empty
+    ijk = ns.vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64) + lo
+    f = ns.vtk_to_numpy(poly.GetPolys().GetConnectivityArray()).astype(np.int64).reshape(-1, 3)
+    D = np.array(labels.GetDirection(), float).reshape(3, 3)
+    v = np.array(labels.GetOrigin(), float) + (ijk * np.array(labels.GetSpacing(), float)) @ D.T
+    if enclosed_volume(v, f) < 0:  # a left-handed direction matrix flips the orientation
+        f = f[:, ::-1].copy()
+    return Surface(v, f, "LPS")
 
 
 METHODS = {
