@@ -67,6 +67,9 @@ REFINE_SIGMA_MM = 0.4
 REFINE_SIGMA_MIN_VOXELS = 0.5
 # A bone reaches at most max(segment_dilation, BAND_COARSENESS x coarseness) beyond its label.
 BAND_COARSENESS = 1.0
+# Vertices farther than this (mm) from every other bone's voxels are its free surface (where
+# the edge refinement's support is measured).
+FREE_SURFACE_MM = 2.0
 
 # Overall progress fraction at the start and end of each stage.
 STAGES = [("open3d", 0.0, 0.03), ("prepare", 0.03, 0.10), ("filter", 0.10, 0.14),
@@ -439,7 +442,11 @@ def _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, progress, name, st
     m0 = Surface(m0.vertices + origin, m0.faces)
     times.poisson = time.perf_counter() - t0
     progress(1.0, f"{name}: M0 done")
+    others = (own.owner[masks.box] > 0) & (own.owner[masks.box] != k)
+    others_distance = (ndimage.distance_transform_edt(~others).astype(np.float32) * d
+                       if others.any() else None)
     return {"masks": masks, "m0": m0, "raw_vertices": raw.n_vertices,
+            "others_distance": others_distance,
             "visible": visible + origin, "b_ht": b_ht + origin, "n_candidates": len(candidates),
             "vis_info": vis_info, "times": times, "separation": separation,
             "vertices": m0.vertices.copy(), "faces": m0.faces, "history": [],
@@ -470,10 +477,17 @@ def _shape_bone(b, ct_smooth, ht, params, d, allowed, progress):
     b["deformed"] = verts
     t0 = time.perf_counter()
     if params.refine_edges:
-        verts, shift, frac = refine_to_edges(verts, b["faces"], ct_smooth, d, ht,
-                                             edge_level=params.edge_level, allowed=allowed,
-                                             progress=progress.stage(0.6, 1.0))
-        b["refinement"] = Refinement(applied=True, fraction_with_edge=frac,
+        before = verts
+        verts, shift, frac, found = refine_to_edges(verts, b["faces"], ct_smooth, d, ht,
+                                                    edge_level=params.edge_level, allowed=allowed,
+                                                    progress=progress.stage(0.6, 1.0))
+        # Edge support on the free surface: where the bone touches another one (no joint space
+        # on the CT) no edge is expected.
+        free = np.ones(len(verts), bool)
+        if b.get("others_distance") is not None:
+            free = sample_field(b["others_distance"], before - origin, d, cval=1e3) > FREE_SURFACE_MM
+        support = float(found[free].mean()) if free.any() else float(found.mean())
+        b["refinement"] = Refinement(applied=True, fraction_with_edge=support,
                                      mean_shift_mm=float(shift.mean()),
                                      mean_abs_shift_mm=float(np.abs(shift).mean()))
     b["times"].refine = time.perf_counter() - t0

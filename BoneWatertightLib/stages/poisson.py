@@ -89,6 +89,10 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int) -> Surf
     depth : int
         Octree depth.
     """
+    # Points without a usable normal (a flat mask gradient, e.g. at the grid's edge) are no
+    # evidence of the orientation: leave them out (open3d rejects them as "bad data").
+    good = np.isfinite(points).all(axis=1) & (np.linalg.norm(normals, axis=1) > 0.5)
+    points, normals = points[good], normals[good]
     o3d = import_open3d()
     pcd = o3d.geometry.PointCloud()
     pcd.points = o3d.utility.Vector3dVector(points)

@@ -84,15 +84,19 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
         Signed move along the input's vertex normals (mm, outward positive).
     fraction : float
         Fraction of vertices whose profile had an edge (last pass).
+    found : (n,) bool array
+        Which vertices' profiles had an edge (last pass).
     """
     v = vertices
     frac = 0.0
+    found = np.zeros(len(vertices), bool)
     L = laplacian(len(vertices), faces)
     ops = ((L.T @ L).tocsr(), (sp.identity(len(vertices), format="csr") - L).tocsr())
     for i in range(passes):
-        v, _, frac, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
-                                     smoothness, damping, ops=ops, edge_level=edge_level,
-                                     allowed=allowed)
+        v, _, found, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
+                                      smoothness, damping, ops=ops, edge_level=edge_level,
+                                      allowed=allowed)
+        frac = float(found.mean())
         if progress:
             progress((i + 1) / (passes + VERIFY_ROUNDS), f"edge refinement {i + 1}/{passes}")
         if not ok:
@@ -121,13 +125,13 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
     else:
         v = clean
     n = vertex_normals(vertices, faces)
-    return v, np.einsum("ij,ij->i", v - vertices, n), frac
+    return v, np.einsum("ij,ij->i", v - vertices, n), frac, found
 
 
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
                 min_contrast=MIN_CONTRAST_HU, smoothness=REFINE_ALPHA, damping=REFINE_BETA, ops=None,
                 edge_level=0.6, allowed=None):
-    """Return (new vertices, per-vertex shift along the normal, fraction refined, ok).
+    """Return (new vertices, per-vertex shift along the normal, edge found (n,) bool, ok).
 
     The half-maximum points are soft targets of one regularised Laplacian step (as in the
     deformation) followed by the local back-off, so the result never folds or self-intersects."""
@@ -174,4 +178,4 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
     new = solve_spd(A, rhs, vertices)
     new, safe, _ = safe_update(vertices, new, faces, intersections=False)
     moved = np.einsum("ij,ij->i", new - vertices, n)
-    return new, moved, float(ok.mean()), safe
+    return new, moved, ok, safe
