@@ -8,9 +8,18 @@ Coordinate conventions: MRML is RAS, SimpleITK images and the pipeline are LPS. 
 full IJK->RAS matrix (any direction, non-zero origin) and its parent transform (world frame)
 are converted into the SimpleITK origin/spacing/direction; surfaces come back as RAS polydata.
 
-Nothing here modifies an input node: voxels are copied, the segment is exported through
-vtkOrientedImageData objects that never enter the scene, and the output model node is only
-created or touched after the pipeline succeeded.
+Nothing here modifies an input node: voxels are copied, the segments are exported through
+vtkOrientedImageData objects that never enter the scene, and the output model nodes (and the
+segments written back) are only created or touched after the pipeline succeeded.
+
+Several bones (SPEC §5b): :func:`run_many_on_nodes` exports the segments to reconstruct and
+their neighbours (by default every other segment of the segmentation) into one label image
+with a value per segment (:func:`segments_to_sitk_labels`; overlapping segments are refused,
+named), reconstructs them together (``pipeline.reconstruct_many``) and, on success only, makes
+one model per bone and, on request, writes the surfaces back as segments that share one label
+map layer, so that no voxel belongs to two of them (:func:`prepare_segments_without_overlap`).
+:func:`run_on_nodes` is the one-bone case (the other segments are its neighbours unless
+``neighbours="none"``).
 
 Besides the conversions: a run that reports progress from its first moment and is cancelled
 when its scene closes (:func:`run_on_nodes`, :class:`RunGuard`, :class:`RunProgress`,
@@ -25,6 +34,7 @@ import math
 import sys
 import threading
 import time
+from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
@@ -209,22 +219,36 @@ def _binary_labelmap_name() -> str:
     return slicer.vtkSegmentationConverter.GetBinaryLabelmapRepresentationName()
 
 
-def _segment_labelmap_world(segmentationNode, segmentId: str, reference):
-    """(oriented labelmap in world RAS, label value of the segment in it)."""
+def _closed_surface_name() -> str:
+    return slicer.vtkSegmentationConverter.GetClosedSurfaceRepresentationName()
+
+
+def _labelmap_layers_world(segmentationNode, segmentIds, reference) -> list:
+    """The label maps that hold ``segmentIds``, in world RAS: one ``(oriented labelmap, {segment
+    ID: label value in it})`` per layer (segments sharing a labelmap are read once).
+
+    A segmentation with a binary labelmap is read as it is (parent transform applied); one whose
+    source is another representation (closed surface) is converted in a private copy directly
+    on the CT grid, so the user's segmentation keeps its representations and conversion
+    parameters untouched.
+    """
     segmentation = segmentationNode.GetSegmentation()
     binary = _binary_labelmap_name()
-    segment = segmentation.GetSegment(segmentId)
+    layers = {}
     if segmentation.ContainsRepresentation(binary):
-        labelmap = slicer.vtkOrientedImageData()
-        ok = slicer.vtkSlicerSegmentationsModuleLogic.GetSegmentBinaryLabelmapRepresentation(
-            segmentationNode, segmentId, labelmap, True)
-        if not ok:
-            raise InputError(f"Could not read the label map of segment '{segment.GetName()}'.")
-        return labelmap, segment.GetLabelValue()
+        for segmentId in segmentIds:
+            layers.setdefault(segmentation.GetLayerIndex(segmentId), []).append(segmentId)
+        out = []
+        for ids in layers.values():
+            labelmap = slicer.vtkOrientedImageData()
+            ok = slicer.vtkSlicerSegmentationsModuleLogic.GetSegmentBinaryLabelmapRepresentation(
+                segmentationNode, ids[0], labelmap, True)
+            if not ok:
+                raise InputError(f"Could not read the label map of segment "
+                                 f"'{segmentation.GetSegment(ids[0]).GetName()}'.")
+            out.append((labelmap, {s: segmentation.GetSegment(s).GetLabelValue() for s in ids}))
+        return out
 
-    # Source is a closed surface (or another representation) without a labelmap. Convert a
-    # private copy of the segment directly on the CT grid, so the user's segmentation keeps
-    # its representations and conversion parameters untouched.
     seg_to_world = _to_world_matrix(segmentationNode)
     if seg_to_world is None:
         raise InputError(f"Segmentation '{segmentationNode.GetName()}' is under a non-linear transform; "
@@ -239,13 +263,29 @@ def _segment_labelmap_world(segmentationNode, segmentId: str, reference):
     private.SetConversionParameter(
         slicer.vtkSegmentationConverter.GetReferenceImageGeometryParameterName(),
         slicer.vtkSegmentationConverter.SerializeImageGeometry(local_ref))
-    if not private.CopySegmentFromSegmentation(segmentation, segmentId) or not private.CreateRepresentation(binary):
-        raise InputError(f"Segment '{segment.GetName()}' could not be converted to a label map.")
-    local = private.GetSegment(segmentId).GetRepresentation(binary)
-    labelmap = slicer.vtkOrientedImageData()
-    labelmap.DeepCopy(local)
-    labelmap.SetImageToWorldMatrix(_np_to_vtk_matrix(seg_to_world @ _oriented_image_matrix(local)))
-    return labelmap, private.GetSegment(segmentId).GetLabelValue()
+    for segmentId in segmentIds:
+        if not private.CopySegmentFromSegmentation(segmentation, segmentId):
+            raise InputError(f"Segment '{segmentation.GetSegment(segmentId).GetName()}' could not be "
+                             "read.")
+    if not private.CreateRepresentation(binary):
+        names = ", ".join(f"'{segmentation.GetSegment(s).GetName()}'" for s in segmentIds)
+        raise InputError(f"Segment(s) {names} could not be converted to a label map.")
+    for segmentId in segmentIds:
+        layers.setdefault(private.GetLayerIndex(segmentId), []).append(segmentId)
+    out = []
+    for ids in layers.values():
+        local = private.GetSegment(ids[0]).GetRepresentation(binary)
+        labelmap = slicer.vtkOrientedImageData()
+        labelmap.DeepCopy(local)
+        labelmap.SetImageToWorldMatrix(_np_to_vtk_matrix(seg_to_world @ _oriented_image_matrix(local)))
+        out.append((labelmap, {s: private.GetSegment(s).GetLabelValue() for s in ids}))
+    return out
+
+
+def _segment_labelmap_world(segmentationNode, segmentId: str, reference):
+    """(oriented labelmap in world RAS, label value of the segment in it)."""
+    (labelmap, values), = _labelmap_layers_world(segmentationNode, [segmentId], reference)
+    return labelmap, values[segmentId]
 
 
 def _check_segment(segmentationNode, segmentId):
@@ -266,67 +306,47 @@ def segment_to_sitk_mask(segmentationNode, segmentId: str, referenceVolumeNode) 
     Works whatever the segmentation's own geometry (cropped extent, oversampled, other
     origin/direction, shared labelmap, closed-surface source, linear parent transforms).
     """
-    segment = _check_segment(segmentationNode, segmentId)
-    reference = _reference_geometry(referenceVolumeNode)
-    labelmap, label = _segment_labelmap_world(segmentationNode, segmentId, reference)
-    ijk_to_world = _oriented_image_matrix(reference)
-    ref_extent = reference.GetExtent()
-    box = _segment_box_on_grid(labelmap, label, ijk_to_world, ref_extent)
-    if box is None:
-        raise EmptySegmentError(f"Segment '{segment.GetName()}' is empty. Paint at least a rough "
-                                "outline of the bone into it (Segment Editor), then apply again.")
-    no_overlap = NoOverlapError(f"Segment '{segment.GetName()}' does not overlap volume "
-                                f"'{referenceVolumeNode.GetName()}'. Select the CT the segment was drawn "
-                                "on (or check the transforms of both nodes).")
-    if box is False:
-        raise no_overlap
-    # Resample only onto the part of the CT grid that the segment can reach (a full-grid
-    # nearest-neighbour resample of a 512x512x500 CT took ~1.5 s); the rest stays 0.
-    crop = slicer.vtkOrientedImageData()
-    crop.SetExtent(box)
-    crop.SetImageToWorldMatrix(_np_to_vtk_matrix(ijk_to_world))
-    resampled = slicer.vtkOrientedImageData()
-    ok = slicer.vtkOrientedImageDataResample.ResampleOrientedImageToReferenceOrientedImage(
-        labelmap, crop, resampled, False, False, None, 0)
-    if not ok or resampled.GetPointData().GetScalars() is None:
-        raise no_overlap
-    dims = [ref_extent[2 * a + 1] - ref_extent[2 * a] + 1 for a in range(3)]
-    mask = np.zeros((dims[2], dims[1], dims[0]), dtype=np.uint8)
-    e = resampled.GetExtent()
-    mask[e[4] - ref_extent[4]:e[5] - ref_extent[4] + 1,
-         e[2] - ref_extent[2]:e[3] - ref_extent[2] + 1,
-         e[0] - ref_extent[0]:e[1] - ref_extent[0] + 1] = _array_view(resampled) == label
-    if not mask.any():
-        raise no_overlap
-    return _sitk_from_array(mask, ijk_to_world, ref_extent[0::2])
+    _check_segment(segmentationNode, segmentId)
+    labels = segments_to_sitk_labels(segmentationNode, [segmentId], referenceVolumeNode)
+    return sitk.Cast(sitk.NotEqual(labels.image, 0), sitk.sitkUInt8)
+
+
+def _label_boxes(labelmap, labels) -> dict:
+    """{label: [i0, i1, j0, j1, k0, k1]} IJK index range of the voxels == label in the label
+    map (None for a label without voxels), all labels in one pass over the voxels."""
+    from scipy import ndimage
+
+    scalars = labelmap.GetPointData().GetScalars() if labelmap.GetPointData() is not None else None
+    wanted = sorted({int(v) for v in labels})
+    if scalars is None or not wanted or wanted[-1] <= 0:
+        return {v: None for v in wanted}
+    arr = _array_view(labelmap)
+    if arr.dtype.kind not in "iu" or arr.dtype.itemsize > 4:
+        arr = arr.astype(np.int32)
+    found = ndimage.find_objects(arr, max_label=wanted[-1])
+    extent = labelmap.GetExtent()
+    boxes = {}
+    for v in wanted:
+        slices = found[v - 1] if v >= 1 else None
+        if slices is None:
+            boxes[v] = None
+            continue
+        k, j, i = slices
+        boxes[v] = [i.start + extent[0], i.stop - 1 + extent[0], j.start + extent[2],
+                    j.stop - 1 + extent[2], k.start + extent[4], k.stop - 1 + extent[4]]
+    return boxes
 
 
 def _label_index_box(labelmap, label):
     """(i0, i1, j0, j1, k0, k1) IJK index range of the voxels == label, or None if there are none."""
-    scalars = labelmap.GetPointData().GetScalars() if labelmap.GetPointData() is not None else None
-    if scalars is None:
-        return None
-    inside = _array_view(labelmap) == label
-    box = []
-    for axis in (2, 1, 0):  # i, j, k: the numpy axes are (k, j, i)
-        others = tuple(a for a in range(3) if a != axis)
-        hit = np.flatnonzero(inside.any(axis=others))
-        if hit.size == 0:
-            return None
-        box += [int(hit[0]), int(hit[-1])]
-    extent = labelmap.GetExtent()
-    return [box[n] + extent[2 * (n // 2)] for n in range(6)]
+    return _label_boxes(labelmap, [label])[int(label)]
 
 
-def _segment_box_on_grid(labelmap, label, grid_to_world: np.ndarray, grid_extent, pad: int = 1,
-                         margin_voxels=(0, 0, 0)):
-    """Extent on a grid (IJK -> world matrix, extent) that holds every voxel of the segment.
-
-    The segment's voxel box is mapped through both matrices (any rotation or spacing), grown
-    by ``pad`` + ``margin_voxels`` (i, j, k) and clipped to ``grid_extent``. Returns None for
-    an empty segment and False when the box misses the grid.
-    """
-    box = _label_index_box(labelmap, label)
+def _box_on_grid(box, labelmap, grid_to_world: np.ndarray, grid_extent, pad: int = 1,
+                 margin_voxels=(0, 0, 0)):
+    """Extent on a grid (IJK -> world matrix, extent) that holds the voxel box ``box`` of a
+    label map (any rotation or spacing), grown by ``pad`` + ``margin_voxels`` (i, j, k) and
+    clipped to ``grid_extent``. None for no box, False when the box misses the grid."""
     if box is None:
         return None
     corners = np.array([[i, j, k, 1.0] for i in (box[0] - 0.5, box[1] + 0.5)
@@ -341,6 +361,197 @@ def _segment_box_on_grid(labelmap, label, grid_to_world: np.ndarray, grid_extent
             return False
         out += [int(a0), int(a1)]
     return out
+
+
+def _segment_box_on_grid(labelmap, label, grid_to_world: np.ndarray, grid_extent, pad: int = 1,
+                         margin_voxels=(0, 0, 0)):
+    """Extent on a grid (IJK -> world matrix, extent) that holds every voxel of the segment.
+
+    The segment's voxel box is mapped through both matrices (any rotation or spacing), grown
+    by ``pad`` + ``margin_voxels`` (i, j, k) and clipped to ``grid_extent``. Returns None for
+    an empty segment and False when the box misses the grid.
+    """
+    return _box_on_grid(_label_index_box(labelmap, label), labelmap, grid_to_world, grid_extent,
+                        pad, margin_voxels)
+
+
+def _union_box(boxes):
+    boxes = [b for b in boxes if b]
+    if not boxes:
+        return None
+    b = np.array(boxes)
+    return [int(b[:, 0].min()), int(b[:, 1].max()), int(b[:, 2].min()), int(b[:, 3].max()),
+            int(b[:, 4].min()), int(b[:, 5].max())]
+
+
+def _boxes_meet(a, b, grow=(0, 0, 0)) -> bool:
+    return all(a[2 * n] - grow[n] <= b[2 * n + 1] and b[2 * n] <= a[2 * n + 1] + grow[n]
+               for n in range(3))
+
+
+# ---------------------------------------------------------------------------------------
+# several segments as one label map
+# ---------------------------------------------------------------------------------------
+
+# Neighbours farther than margin + segment_dilation + this from the bones to reconstruct are
+# left out: the pipeline crops to the targets + margin + band, and the band is at most
+# segment_dilation + 3 mm (segments beyond the crop cannot compete, and cannot block a run by
+# overlapping each other far away).
+NEIGHBOUR_REACH_SLACK_MM = 10.0
+
+
+@dataclass
+class SegmentLabels:
+    """Segments of one segmentation as one label image on the CT grid.
+
+    ``image``: uint16 (uint32 beyond 65535 segments) SimpleITK image on the CT grid (LPS), 0 =
+    background; ``values``: segment ID -> its label value (1, 2, ... in the order asked for);
+    ``names``: label value -> segment name (made unique); ``skipped``: segment ID -> why it is not
+    in the image (empty, outside the CT, beyond the neighbours' reach).
+    """
+
+    image: sitk.Image
+    values: dict
+    names: dict
+    skipped: dict = field(default_factory=dict)
+
+    def segmentId(self, value: int) -> str:
+        return next(s for s, v in self.values.items() if v == value)
+
+
+def _unique_names(segmentation, segmentIds) -> dict:
+    names = [segmentation.GetSegment(s).GetName() or s for s in segmentIds]
+    return {s: (n if names.count(n) == 1 else f"{n} ({s})") for s, n in zip(segmentIds, names)}
+
+
+def _overlap_error(segmentationNode, overlaps: dict, names: dict, voxel_mm3: float) -> InputError:
+    pairs = sorted(overlaps.items(), key=lambda item: -item[1])
+    shown = "; ".join(f"'{names[a]}' and '{names[b]}' ({count} voxels, {count * voxel_mm3:.0f} mm³)"
+                      for (a, b), count in pairs[:5])
+    more = f" and {len(pairs) - 5} more pairs" if len(pairs) > 5 else ""
+    return InputError(
+        f"Segments of '{segmentationNode.GetName()}' overlap on the CT grid: {shown}{more}. A voxel can "
+        "belong to one bone only. Remove the overlap (Segment Editor: Logical operators, or paint "
+        "with 'Modify other segments: overwrite all'), or do not use the other segments as "
+        "neighbours (panel: uncheck 'Other segments are neighbours'; logic: neighbours='none').")
+
+
+def segments_to_sitk_labels(segmentationNode, segmentIds, referenceVolumeNode, *, required=None,
+                            reach_mm: Optional[float] = None, progress=None) -> SegmentLabels:
+    """Segments of a segmentation as one label image on the CT grid, a value per segment.
+
+    :param segmentIds: segments to export, in the order their values are given (1, 2, ...).
+    :param required: the segments that must be there (the bones to reconstruct; default all):
+        empty -> EmptySegmentError, outside the CT -> NoOverlapError. Other segments that are
+        empty or outside the CT are skipped (``skipped`` says why).
+    :param reach_mm: when given, a segment that is not required and lies farther than this
+        from the required ones is skipped as well.
+    :param progress: ``progress(fraction in [0, 1], message)`` once per label map layer.
+    :raises InputError: two segments overlap on the CT grid (the message names them).
+
+    Each layer (segments sharing a label map) is resampled once, nearest neighbour, onto the
+    part of the CT grid that its segments reach (any geometry, parent transforms applied).
+    Nothing of the segmentation is modified.
+    """
+    segmentIds = list(segmentIds)
+    required = list(segmentIds if required is None else required)
+    for segmentId in segmentIds + required:
+        _check_segment(segmentationNode, segmentId)
+    if len(set(segmentIds)) != len(segmentIds):
+        raise InputError("The same segment is asked for twice; give each segment once.")
+    segmentation = segmentationNode.GetSegmentation()
+    names = _unique_names(segmentation, segmentIds)
+    reference = _reference_geometry(referenceVolumeNode)
+    ijk_to_world = _oriented_image_matrix(reference)
+    ref_extent = reference.GetExtent()
+    layers = _labelmap_layers_world(segmentationNode, segmentIds, reference)
+
+    # every segment's box on the CT grid (one pass over each layer's voxels)
+    grid_box, skipped = {}, {}
+    for labelmap, values in layers:
+        boxes = _label_boxes(labelmap, values.values())
+        for segmentId, label in values.items():
+            grid_box[segmentId] = _box_on_grid(boxes[int(label)], labelmap, ijk_to_world, ref_extent)
+
+    def missing(segmentId, box):
+        name = names[segmentId]
+        if box is None:
+            return EmptySegmentError(f"Segment '{name}' is empty. Paint at least a rough outline of "
+                                     "the bone into it (Segment Editor), then apply again.")
+        return NoOverlapError(f"Segment '{name}' does not overlap volume "
+                              f"'{referenceVolumeNode.GetName()}'. Select the CT the segment was "
+                              "drawn on (or check the transforms of both nodes).")
+
+    for segmentId in required:
+        if not grid_box[segmentId]:
+            raise missing(segmentId, grid_box[segmentId])
+    for segmentId in segmentIds:
+        if not grid_box[segmentId]:
+            skipped[segmentId] = "empty" if grid_box[segmentId] is None else "outside the CT"
+    if reach_mm is not None and required:
+        spacing = np.linalg.norm(ijk_to_world[:3, :3], axis=0)
+        grow = np.ceil(float(reach_mm) / spacing).astype(int)
+        targets_box = _union_box(grid_box[s] for s in required)
+        for segmentId in segmentIds:
+            if segmentId not in required and segmentId not in skipped \
+                    and not _boxes_meet(grid_box[segmentId], targets_box, grow):
+                skipped[segmentId] = f"farther than {reach_mm:g} mm from the bones"
+
+    kept = [s for s in segmentIds if s not in skipped]
+    values = {s: n for n, s in enumerate(kept, 1)}
+    dims = [ref_extent[2 * a + 1] - ref_extent[2 * a] + 1 for a in range(3)]
+    dtype = np.uint16 if len(kept) < 2 ** 16 else np.uint32
+    out = np.zeros((dims[2], dims[1], dims[0]), dtype=dtype)
+    overlaps = {}
+    for n, (labelmap, layer_values) in enumerate(layers):
+        if progress is not None:
+            progress(n / len(layers), "Reading the segments" if len(segmentIds) > 1 else "Reading the segment")
+        mine = {s: int(v) for s, v in layer_values.items() if s in values}
+        box = _union_box(grid_box[s] for s in mine)
+        if box is None:
+            continue
+        crop = slicer.vtkOrientedImageData()
+        crop.SetExtent(box)
+        crop.SetImageToWorldMatrix(_np_to_vtk_matrix(ijk_to_world))
+        resampled = slicer.vtkOrientedImageData()
+        ok = slicer.vtkOrientedImageDataResample.ResampleOrientedImageToReferenceOrientedImage(
+            labelmap, crop, resampled, False, False, None, 0)
+        if not ok or resampled.GetPointData().GetScalars() is None:
+            continue
+        source = _array_view(resampled)
+        lut = np.zeros(max(max(mine.values()), int(source.max(initial=0))) + 1, dtype=dtype)
+        for segmentId, label in mine.items():
+            if label > 0:
+                lut[label] = values[segmentId]
+        mapped = lut[np.clip(source, 0, len(lut) - 1).astype(np.intp)]
+        e = resampled.GetExtent()
+        region = out[e[4] - ref_extent[4]:e[5] - ref_extent[4] + 1,
+                     e[2] - ref_extent[2]:e[3] - ref_extent[2] + 1,
+                     e[0] - ref_extent[0]:e[1] - ref_extent[0] + 1]
+        new = mapped != 0
+        clash = new & (region != 0)
+        if clash.any():
+            pairs, counts = np.unique(np.stack([region[clash], mapped[clash]]), axis=1,
+                                      return_counts=True)
+            for (a, b), count in zip(pairs.T, counts):
+                key = tuple(sorted((kept[int(a) - 1], kept[int(b) - 1]), key=segmentIds.index))
+                overlaps[key] = overlaps.get(key, 0) + int(count)
+            new &= ~clash
+        region[new] = mapped[new]
+    if overlaps:
+        raise _overlap_error(segmentationNode, overlaps, names,
+                             float(np.prod(np.linalg.norm(ijk_to_world[:3, :3], axis=0))))
+    present = set(np.unique(out).tolist()) - {0}
+    for segmentId in required:
+        if values[segmentId] not in present:  # box on the grid, but no voxel centre inside
+            raise missing(segmentId, False)
+    for segmentId in kept:
+        if values[segmentId] not in present:
+            skipped[segmentId] = "outside the CT"
+            del values[segmentId]
+    image = _sitk_from_array(out, ijk_to_world, ref_extent[0::2])
+    return SegmentLabels(image=image, values=values,
+                         names={v: names[s] for s, v in values.items()}, skipped=skipped)
 
 
 def volume_node_from_sitk(scene, image: sitk.Image, name: str = "CT",
@@ -382,6 +593,32 @@ def segmentation_node_from_mask(scene, mask: sitk.Image, name: str = "Segmentati
         raise EmptySegmentError("The mask is empty: nothing to import.")
     segmentation.GetSegmentation().GetSegment(segmentId).SetName(segmentName)
     return segmentation, segmentId
+
+
+def segmentation_node_from_labels(scene, labels: sitk.Image, names: Optional[dict] = None,
+                                  name: str = "Segmentation"):
+    """A new segmentation node with one segment per non-zero label value of a label image (on
+    its own grid; the segments share one label map, as Slicer imports a label map); returns
+    ``(segmentationNode, {label value: segment ID})``. ``names``: label value -> segment name
+    (default "Label <value>"). The scene's segmentations logic must be set up first."""
+    values = [int(v) for v in np.unique(sitk.GetArrayViewFromImage(labels)) if v != 0]
+    if not values:
+        raise EmptySegmentError("The label map is empty: nothing to import.")
+    labelmap = volume_node_from_sitk(scene, labels, "BoneWatertight import", "vtkMRMLLabelMapVolumeNode")
+    segmentation = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
+    try:
+        if not slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(labelmap, segmentation):
+            raise InputError("The label map could not be imported into a segmentation.")
+    finally:
+        scene.RemoveNode(labelmap)
+    s = segmentation.GetSegmentation()
+    ids = {}
+    for n in range(s.GetNumberOfSegments()):
+        segmentId = s.GetNthSegmentID(n)
+        value = int(s.GetSegment(segmentId).GetLabelValue())
+        ids[value] = segmentId
+        s.GetSegment(segmentId).SetName(str((names or {}).get(value, f"Label {value}")))
+    return segmentation, ids
 
 
 # ---------------------------------------------------------------------------------------
@@ -450,6 +687,189 @@ def add_surface_as_segment(segmentationNode, surface: Surface, name: str) -> str
     if not segmentation.AddSegment(segment, segmentId):
         raise InputError(f"Could not add the surface as segment '{name}' to '{segmentationNode.GetName()}'.")
     return segmentId
+
+
+# Attributes of a model node made by a run: which segment it is the surface of, and (several
+# bones) the joint report with the pair checks.
+SOURCE_SEGMENT_ATTRIBUTE = "BoneWatertight.SourceSegment"
+JOINT_REPORT_ATTRIBUTE = "BoneWatertight.JointReport"
+# Tag of a segment written back by a run (value: the ID of the segment it was made from). Such a
+# segment is a copy of its source, never one of the "other segments" that compete as neighbours.
+SOURCE_SEGMENT_TAG = "BoneWatertight.SourceSegment"
+
+
+@dataclass
+class PreparedSegments:
+    """Surfaces rasterised for writing back into a segmentation, without overlap.
+
+    ``labelmap``: one vtkOrientedImageData in the segmentation's own frame with the value
+    ``n`` for the n-th surface (one shared layer: no voxel can belong to two segments);
+    ``polys``: the surfaces in the segmentation's frame (their closed-surface representation);
+    ``resolvedVoxels``: voxels that the rasterisations of two surfaces both claimed (a joint
+    narrower than a voxel), each given to the surface it lies deepest inside.
+    """
+
+    labelmap: object
+    names: list
+    polys: list
+    resolvedVoxels: int = 0
+
+
+def _write_back_geometry(segmentationNode, volumeNode) -> str:
+    """Serialized geometry (segmentation frame) of the written-back label maps: the
+    segmentation's reference geometry, else the CT grid."""
+    segmentation = segmentationNode.GetSegmentation()
+    geometry = segmentation.GetConversionParameter(
+        slicer.vtkSegmentationConverter.GetReferenceImageGeometryParameterName())
+    if geometry:
+        return geometry
+    seg_to_world = _to_world_matrix(segmentationNode)
+    if seg_to_world is None:
+        raise InputError(f"Segmentation '{segmentationNode.GetName()}' is under a non-linear transform "
+                         "and has no reference geometry: harden its transform to write the surfaces "
+                         "back as segments (or switch that option off).")
+    reference = _reference_geometry(volumeNode)
+    local = slicer.vtkOrientedImageData()
+    local.SetExtent(reference.GetExtent())
+    local.SetImageToWorldMatrix(_np_to_vtk_matrix(np.linalg.inv(seg_to_world) @ _oriented_image_matrix(reference)))
+    return slicer.vtkSegmentationConverter.SerializeImageGeometry(local)
+
+
+def _mask_on_grid(labelmap, label, grid_to_local: np.ndarray):
+    """(bool (k, j, i) array, extent) of ``labelmap == label`` on a grid with the given
+    IJK -> frame matrix (the label map's own voxels when it is that grid)."""
+    box = _label_index_box(labelmap, label)
+    if box is None:
+        return None, None
+    if np.allclose(_oriented_image_matrix(labelmap), grid_to_local, atol=1e-6):
+        e = labelmap.GetExtent()
+        arr = _array_view(labelmap)[box[4] - e[4]:box[5] - e[4] + 1, box[2] - e[2]:box[3] - e[2] + 1,
+                                    box[0] - e[0]:box[1] - e[0] + 1]
+        return arr == label, box
+    big = 2 ** 30
+    extent = _box_on_grid(box, labelmap, grid_to_local, [-big, big] * 3)
+    ref = slicer.vtkOrientedImageData()
+    ref.SetExtent(extent)
+    ref.SetImageToWorldMatrix(_np_to_vtk_matrix(grid_to_local))
+    out = slicer.vtkOrientedImageData()
+    slicer.vtkOrientedImageDataResample.ResampleOrientedImageToReferenceOrientedImage(
+        labelmap, ref, out, False, False, None, 0)
+    return _array_view(out) == label, list(out.GetExtent())
+
+
+def prepare_segments_without_overlap(segmentationNode, volumeNode, named_surfaces) -> PreparedSegments:
+    """Rasterise surfaces (``[(name, Surface)]``, world) for the segmentation, without overlap.
+
+    Each surface is converted by Slicer's own closed-surface -> label map rule with the
+    segmentation's conversion parameters, in a private copy (on its reference geometry, else
+    on the CT grid); the results go into one label map with a value per surface. Surfaces that
+    do not overlap (the pipeline checks every pair) can still claim one voxel each at a joint
+    narrower than a voxel: such a voxel goes to the surface whose inside it is deepest in
+    (signed distance at the voxel centre). Nothing of the segmentation is modified.
+    """
+    segmentation = segmentationNode.GetSegmentation()
+    binary, closed = _binary_labelmap_name(), _closed_surface_name()
+    private = slicer.vtkSegmentation()
+    private.SetSourceRepresentationName(closed)
+    private.CopyConversionParameters(segmentation)
+    private.SetConversionParameter(slicer.vtkSegmentationConverter.GetReferenceImageGeometryParameterName(),
+                                   _write_back_geometry(segmentationNode, volumeNode))
+    names, polys = [], []
+    for n, (name, surface) in enumerate(named_surfaces):
+        poly = _into_node_frame(segmentationNode, surface_to_polydata_ras(surface))
+        segment = slicer.vtkSegment()
+        segment.SetName(name)
+        segment.AddRepresentation(closed, poly)
+        if not private.AddSegment(segment, f"bone{n}"):
+            raise InputError(f"The surface of {name} could not be prepared as a segment.")
+        names.append(name)
+        polys.append(poly)
+    if not private.CreateRepresentation(binary):
+        raise InputError("The surfaces could not be converted to label maps for the segmentation.")
+    first = private.GetSegment("bone0").GetRepresentation(binary)
+    grid = _oriented_image_matrix(first)
+    masks = []
+    for n in range(len(names)):
+        segment = private.GetSegment(f"bone{n}")
+        masks.append(_mask_on_grid(segment.GetRepresentation(binary), segment.GetLabelValue(), grid))
+    boxes = [box for _, box in masks if box is not None]
+    if not boxes:
+        raise InputError("The surfaces are too small for the segmentation's label map geometry.")
+    union = _union_box(boxes)
+    shape = tuple(union[2 * a + 1] - union[2 * a] + 1 for a in (2, 1, 0))
+    dtype = np.uint8 if len(names) < 256 else np.uint16
+    merged = np.zeros(shape, dtype)
+    claims = np.zeros(shape, np.uint16)
+
+    def window(array, box):
+        return array[box[4] - union[4]:box[5] - union[4] + 1, box[2] - union[2]:box[3] - union[2] + 1,
+                     box[0] - union[0]:box[1] - union[0] + 1]
+
+    for n, (mask, box) in enumerate(masks, 1):
+        if mask is None:
+            continue
+        window(merged, box)[mask] = n
+        window(claims, box)[mask] += 1
+    contested = np.argwhere(claims > 1)
+    if len(contested):
+        distance = [None] * len(names)
+        for k, j, i in contested:
+            index = np.array([i + union[0], j + union[2], k + union[4], 1.0])
+            centre = (grid @ index)[:3]
+            best, best_d = 0, np.inf
+            for n, (mask, box) in enumerate(masks, 1):
+                if mask is None:
+                    continue
+                ii, jj, kk = index[:3].astype(int)
+                if not (box[0] <= ii <= box[1] and box[2] <= jj <= box[3] and box[4] <= kk <= box[5]):
+                    continue
+                if not mask[kk - box[4], jj - box[2], ii - box[0]]:
+                    continue
+                if distance[n - 1] is None:
+                    distance[n - 1] = vtk.vtkImplicitPolyDataDistance()
+                    distance[n - 1].SetInput(polys[n - 1])
+                d = distance[n - 1].EvaluateFunction(*centre)
+                if d < best_d:
+                    best, best_d = n, d
+            merged[k, j, i] = best
+    image = slicer.vtkOrientedImageData()
+    image.SetExtent(union)
+    image.SetImageToWorldMatrix(_np_to_vtk_matrix(grid))
+    image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR if dtype == np.uint8 else vtk.VTK_UNSIGNED_SHORT, 1)
+    _array_view(image)[...] = merged
+    return PreparedSegments(labelmap=image, names=names, polys=polys, resolvedVoxels=int(len(contested)))
+
+
+def add_prepared_segments(segmentationNode, prepared: PreparedSegments, colors=None,
+                          sources=None) -> list:
+    """Add the prepared surfaces as new segments sharing one label map layer (so no voxel is in
+    two of them), with their exact surfaces as closed-surface representation where the
+    segmentation keeps one. ``colors``/``sources``: per surface, its colour and the ID of the
+    segment it was made from (SOURCE_SEGMENT_TAG). Returns the new segment IDs; on failure
+    nothing stays added."""
+    segmentation = segmentationNode.GetSegmentation()
+    added = []
+    try:
+        for n, (name, poly) in enumerate(zip(prepared.names, prepared.polys), 1):
+            segment = slicer.vtkSegment()
+            segment.SetName(name)
+            if colors is not None and colors[n - 1] is not None:
+                segment.SetColor(*colors[n - 1])
+            if sources is not None and sources[n - 1]:
+                segment.SetTag(SOURCE_SEGMENT_TAG, sources[n - 1])
+            segment.AddRepresentation(_binary_labelmap_name(), prepared.labelmap)
+            segment.AddRepresentation(_closed_surface_name(), poly)
+            segment.SetLabelValue(n)
+            segmentId = segmentation.GenerateUniqueSegmentID(name)
+            if not segmentation.AddSegment(segment, segmentId):
+                raise InputError(f"Could not add the surface as segment '{name}' to "
+                                 f"'{segmentationNode.GetName()}'.")
+            added.append(segmentId)
+    except Exception:
+        for segmentId in added:
+            segmentation.RemoveSegment(segmentId)
+        raise
+    return added
 
 
 def read_model_file(path: str, modelNode=None):
@@ -656,6 +1076,27 @@ def export_inputs(volumeNode, segmentationNode, segmentId, progress: Optional[Ru
     return ct, mask
 
 
+def export_joint_inputs(volumeNode, segmentationNode, segmentIds, neighbourIds, params: Parameters,
+                        progress: Optional[RunProgress] = None):
+    """(CT, SegmentLabels) for a joint run: the bones and their neighbours as one label image on
+    the CT grid (neighbours out of the pipeline's reach are left out)."""
+    if progress is not None:
+        progress(EXPORT_VOLUME_START, "Reading the CT volume")
+    ct = volume_to_sitk(volumeNode)
+    message = "Reading the segment" if len(segmentIds) + len(neighbourIds) == 1 else "Reading the segments"
+    if progress is not None:
+        progress(EXPORT_SEGMENT_START, message)
+
+    def layer(fraction, text):
+        if progress is not None and fraction > 0:
+            progress(EXPORT_SEGMENT_START + (IMPORT_START - EXPORT_SEGMENT_START) * fraction, text)
+
+    labels = segments_to_sitk_labels(
+        segmentationNode, list(segmentIds) + list(neighbourIds), volumeNode, required=segmentIds,
+        reach_mm=params.margin + params.segment_dilation + NEIGHBOUR_REACH_SLACK_MM, progress=layer)
+    return ct, labels
+
+
 # ---------------------------------------------------------------------------------------
 # the one call
 # ---------------------------------------------------------------------------------------
@@ -679,73 +1120,355 @@ def summarize(result, name: str = "") -> str:
                         result.surface.n_faces)
 
 
+def bone_summary(bone) -> str:
+    """One line per bone of a joint run: vertices, faces, checks, plausibility, cap, warnings."""
+    report = bone.report
+    text = summary_line(bone.name, report.checks, report.distance_to_constraints_mm, None,
+                        bone.surface.n_vertices, bone.surface.n_faces)
+    p = report.plausibility
+    if p is not None:
+        state = "plausible" if p.ok else "IMPLAUSIBLE"
+        text += (f"; {state}: {100 * p.segment_inside_fraction:.0f} % of the segment inside, volume "
+                 f"{p.volume_ratio:.2f} x the segment's, at most {p.max_excursion_mm:.1f} mm outside it")
+    cap = report.cap or {}
+    if cap.get("faces"):
+        text += f"; cut by the scan: capped, {cap.get('area_mm2', 0.0):.0f} mm² of cap"
+    n = len(report.warnings)
+    text += f"; {n} warning{'s' if n != 1 else ''}" if n else ""
+    return text
+
+
+def pair_summary(pair) -> str:
+    """One line per pair of bones: smallest gap, crossings, vertices inside the other."""
+    gap = "no vertex within 2 mm of the other" if pair.min_gap_mm is None else \
+        f"smallest gap {pair.min_gap_mm:.2f} mm"
+    inside = pair.a_inside_b + pair.b_inside_a
+    text = (f"{pair.a} / {pair.b}: {gap}, {pair.crossing_face_pairs} crossing face pairs, "
+            f"{inside} vertices inside the other")
+    if pair.contact_area_mm2:
+        text += f", {pair.contact_area_mm2:.0f} mm² within 1 mm"
+    return text
+
+
+def summarize_joint(joint) -> list:
+    """The lines of a joint run (panel result, logs): a header, one line per bone, one per pair
+    of bones, then every warning (on_implausible = warn)."""
+    report = joint.report
+    n = len(joint.bones)
+    header = f"{n} bone{'s' if n != 1 else ''} in {report.timings.total:.1f} s"
+    header += "; neighbours: " + (", ".join(report.neighbours) if report.neighbours else "none")
+    lines = [header] + [bone_summary(b) for b in joint.bones] + [pair_summary(p) for p in joint.pairs]
+    lines += [f"warning: {w}" for b in joint.bones for w in b.report.warnings]
+    return lines
+
+
+@dataclass
+class JointNodesResult:
+    """What :func:`run_many_on_nodes` made: one model node per bone (``modelNodes[i]`` for
+    ``segmentIds[i]``), the segments written back (``addedSegmentIds``, same order, empty unless
+    asked for), the segments that competed as neighbours, and the pipeline's JointResult."""
+
+    modelNodes: list
+    segmentIds: list
+    result: object
+    addedSegmentIds: list = field(default_factory=list)
+    neighbourSegmentIds: list = field(default_factory=list)
+    skippedSegments: dict = field(default_factory=dict)
+    intermediateNodes: list = field(default_factory=list)
+
+    @property
+    def warnings(self) -> list:
+        return [w for b in self.result.bones for w in b.report.warnings]
+
+    def summaryLines(self) -> list:
+        return summarize_joint(self.result)
+
+
+def _per_segment(value, segmentIds, what: str) -> list:
+    """A list aligned with ``segmentIds`` from None, a sequence of that length or a dict."""
+    if value is None:
+        return [None] * len(segmentIds)
+    if isinstance(value, dict):
+        unknown = set(value) - set(segmentIds)
+        if unknown:
+            raise InputError(f"{what} given for segment(s) not reconstructed: {', '.join(sorted(unknown))}.")
+        return [value.get(s) for s in segmentIds]
+    value = list(value)
+    if len(value) != len(segmentIds):
+        raise InputError(f"{len(value)} {what} for {len(segmentIds)} segments: give one per segment "
+                         "(None: a new one).")
+    return value
+
+
+def _neighbour_ids(segmentationNode, segmentIds, neighbours) -> list:
+    segmentation = segmentationNode.GetSegmentation()
+    every = [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())]
+    if neighbours in (None, "auto", True):
+        # written back by an earlier run: a copy of its source segment, not another bone
+        return [s for s in every if s not in segmentIds
+                and not segmentation.GetSegment(s).HasTag(SOURCE_SEGMENT_TAG)]
+    if neighbours in ("none", False):
+        return []
+    if isinstance(neighbours, str):
+        raise InputError(f"neighbours must be 'auto', 'none' or a list of segment IDs, got '{neighbours}'.")
+    chosen = list(neighbours)
+    for segmentId in chosen:
+        _check_segment(segmentationNode, segmentId)
+    both = [s for s in chosen if s in segmentIds]
+    if both:
+        raise InputError(f"Segment(s) {', '.join(both)} are both reconstructed and neighbours: give "
+                         "each segment one role.")
+    return list(dict.fromkeys(chosen))
+
+
+def run_many_on_nodes(volumeNode, segmentationNode, segmentIds, outputModelNodes=None, params=None,
+                      progress=None, scene=None, *, neighbours="auto", addAsSegments: bool = False,
+                      showIntermediates: bool = False, colorByDistance: bool = False,
+                      modelNames=None) -> JointNodesResult:
+    """Reconstruct several bones of one segmentation together from MRML nodes (SPEC §5b).
+
+    :param segmentIds: the segments to reconstruct (one model each, in this order).
+    :param outputModelNodes: models to replace on success: None (new ones named
+        "<segment> watertight"), a list aligned with ``segmentIds`` (None entries: new), or a
+        dict segment ID -> model node.
+    :param neighbours: "auto" (default: every other segment of the segmentation competes for
+        the joints, and no surface enters it; segments written back by an earlier run are
+        copies of their sources and left out), "none", or a list of segment IDs.
+    :param addAsSegments: also write the surfaces into the segmentation as new segments
+        "<segment> watertight", sharing one label map layer (no voxel in two of them).
+    :param showIntermediates, colorByDistance: as :func:`run_on_nodes`.
+    :param modelNames: names of new models (list aligned with segmentIds or dict).
+    :return: :class:`JointNodesResult`.
+    :raises InputError: bad inputs, overlapping segments (named). ReconstructionError and its
+        subclasses (PlausibilityError, SurfaceCheckError) when a bone fails; CancelledError.
+
+    The scene is only modified after every bone succeeded; a failed or cancelled run leaves it
+    as it was (also should writing the results fail half-way: what was written is undone).
+    Progress, Cancel and the scene-close guard as in :func:`run_on_nodes`.
+    """
+    parameters = _as_parameters(params)
+    if showIntermediates and not parameters.keep_intermediates:
+        parameters = parameters.replace(keep_intermediates=True)
+    parameters.validate()
+    if isinstance(segmentIds, str):
+        segmentIds = [segmentIds]
+    segmentIds = list(segmentIds or [])
+    if scene is None:
+        scene = (volumeNode.GetScene() if volumeNode is not None else None) or (
+            segmentationNode.GetScene() if segmentationNode is not None else None)
+    if scene is None:
+        raise InputError("The input nodes are not in a scene.")
+    if not segmentIds:
+        _check_segment(segmentationNode, "")
+    for segmentId in segmentIds:
+        _check_segment(segmentationNode, segmentId)
+    if len(set(segmentIds)) != len(segmentIds):
+        raise InputError("The same segment is asked for twice; give each segment once.")
+    outputs = _per_segment(outputModelNodes, segmentIds, "output models")
+    for node in outputs:
+        if node is not None and not node.IsA("vtkMRMLModelNode"):
+            raise InputError("The output node must be a model node.")
+    given = [n for n in outputs if n is not None]
+    if len({n.GetID() or id(n) for n in given}) != len(given):
+        raise InputError("The same output model is given for two segments; give each bone its own.")
+    names = _per_segment(modelNames, segmentIds, "model names")
+    neighbourIds = _neighbour_ids(segmentationNode, segmentIds, neighbours)
+
+    with RunGuard(scene, (volumeNode, segmentationNode, *given)) as guard:
+        report = RunProgress(progress, guard)
+        ct, labels = export_joint_inputs(volumeNode, segmentationNode, segmentIds, neighbourIds,
+                                         parameters, report)
+        pipeline = load_pipeline(report)
+        competing = [s for s in neighbourIds if s in labels.values]
+        joint = pipeline.reconstruct_many(
+            ct, labels.image, [labels.values[s] for s in segmentIds], parameters, report.pipeline(),
+            neighbours="auto" if competing else "none", names=labels.names)
+        guard.check()  # the scene may have closed after the last progress report
+        segmentation = segmentationNode.GetSegmentation()
+        segNames = [segmentation.GetSegment(s).GetName() or s for s in segmentIds]
+        surfaces = [_with_distances(b) for b in joint.bones]
+        prepared = None
+        if addAsSegments:
+            prepared = prepare_segments_without_overlap(
+                segmentationNode, volumeNode, [(f"{n} watertight", s) for n, s in zip(segNames, surfaces)])
+            guard.check()
+        out = JointNodesResult(modelNodes=[], segmentIds=segmentIds, result=joint,
+                               neighbourSegmentIds=competing, skippedSegments=dict(labels.skipped))
+        _store_joint(scene, out, segmentationNode, surfaces, outputs, names, segNames, prepared,
+                     showIntermediates=showIntermediates, colorByDistance=colorByDistance)
+        return out
+
+
+def _with_distances(bone) -> Surface:
+    surface = bone.surface
+    if DISTANCE_ARRAY not in surface.point_data and bone.distance_to_constraints is not None:
+        d = np.asarray(bone.distance_to_constraints, dtype=np.float64)
+        if d.shape == (surface.n_vertices,):
+            surface = surface.copy()
+            surface.point_data[DISTANCE_ARRAY] = d
+    return surface
+
+
+class _SceneChanges:
+    """What a successful run writes, undone if writing fails half-way: nodes it added, models
+    it replaced (their mesh, report attributes and display settings), segments it added."""
+
+    _DISPLAY = ("ScalarVisibility", "ActiveScalarName", "ColorNodeID", "ScalarRangeFlag", "ScalarRange")
+
+    def __init__(self, scene, segmentationNode):
+        self.scene = scene
+        self.segmentationNode = segmentationNode
+        self.added = []
+        self.models = []
+        self.segments = []
+
+    def addNode(self, node):
+        self.added.append(node)
+        return node
+
+    def replacingModel(self, node):
+        display = node.GetDisplayNode()
+        state = None if display is None else {k: getattr(display, "Get" + k)() for k in self._DISPLAY}
+        attributes = {k: node.GetAttribute(k) for k in
+                      (REPORT_ATTRIBUTE, JOINT_REPORT_ATTRIBUTE, SOURCE_SEGMENT_ATTRIBUTE)}
+        self.models.append((node, node.GetPolyData(), display, state, attributes))
+
+    def undo(self):
+        segmentation = self.segmentationNode.GetSegmentation()
+        for segmentId in self.segments:
+            segmentation.RemoveSegment(segmentId)
+        for node in reversed(self.added):
+            if node.GetScene() is not None:
+                display = node.GetDisplayNode() if node.IsA("vtkMRMLDisplayableNode") else None
+                node.GetScene().RemoveNode(node)
+                if display is not None and display.GetScene() is not None:
+                    display.GetScene().RemoveNode(display)
+        for node, poly, display, state, attributes in self.models:
+            node.SetAndObservePolyData(poly)
+            for key, value in attributes.items():
+                if value is None:
+                    node.RemoveAttribute(key)
+                else:
+                    node.SetAttribute(key, value)
+            if display is not None:
+                if node.GetDisplayNode() is not display:
+                    created = node.GetDisplayNode()
+                    node.SetAndObserveDisplayNodeID(display.GetID())
+                    if created is not None and created.GetScene() is not None:
+                        created.GetScene().RemoveNode(created)
+                display.SetActiveScalar(state["ActiveScalarName"], vtk.vtkAssignAttribute.POINT_DATA)
+                if display.GetColorNodeID() != state["ColorNodeID"]:  # "" stands for none
+                    display.SetAndObserveColorNodeID(state["ColorNodeID"] or "")
+                display.SetScalarRangeFlag(state["ScalarRangeFlag"])
+                display.SetScalarRange(*state["ScalarRange"])
+                display.SetScalarVisibility(state["ScalarVisibility"])
+            elif node.GetDisplayNode() is not None:
+                created = node.GetDisplayNode()
+                node.SetAndObserveDisplayNodeID(None)
+                if created.GetScene() is not None:
+                    created.GetScene().RemoveNode(created)
+
+
+def _store_joint(scene, out: JointNodesResult, segmentationNode, surfaces, outputs, names, segNames,
+                 prepared, *, showIntermediates, colorByDistance):
+    """Success: only now touch the scene (models, report attributes, segments, intermediates);
+    should any of it fail, what was written is undone and the error propagates."""
+    joint = out.result
+    segmentation = segmentationNode.GetSegmentation()
+    changes = _SceneChanges(scene, segmentationNode)
+    jointJson = to_json(joint.report) if len(joint.bones) > 1 else None
+    try:
+        for segmentId, bone, surface, node, name, segName in zip(out.segmentIds, joint.bones, surfaces,
+                                                                 outputs, names, segNames):
+            color = segmentation.GetSegment(segmentId).GetColor()
+            if node is None:
+                node = changes.addNode(scene.AddNewNodeByClass(
+                    "vtkMRMLModelNode", name or scene.GenerateUniqueName(f"{segName} watertight")))
+                node.CreateDefaultDisplayNodes()
+                if node.GetDisplayNode() is not None:
+                    node.GetDisplayNode().SetColor(*color)
+            else:
+                changes.replacingModel(node)
+            update_model_node(node, surface, colorByDistance=colorByDistance)
+            node.SetAttribute(REPORT_ATTRIBUTE, to_json(bone.report))
+            node.SetAttribute(SOURCE_SEGMENT_ATTRIBUTE, _source_key(segmentationNode, segmentId))
+            if jointJson is not None:
+                node.SetAttribute(JOINT_REPORT_ATTRIBUTE, jointJson)
+            else:
+                node.RemoveAttribute(JOINT_REPORT_ATTRIBUTE)
+            out.modelNodes.append(node)
+        if prepared is not None:
+            colors = [segmentation.GetSegment(s).GetColor() for s in out.segmentIds]
+            changes.segments = add_prepared_segments(segmentationNode, prepared, colors, out.segmentIds)
+            out.addedSegmentIds = list(changes.segments)
+        if showIntermediates:
+            for bone, segName in zip(joint.bones, segNames):
+                if getattr(bone, "intermediates", None):
+                    nodes = add_intermediate_nodes(scene, bone.intermediates, prefix=f"BoneWatertight {segName}")
+                    for node in nodes:
+                        changes.addNode(node)
+                    out.intermediateNodes += nodes
+    except BaseException:
+        changes.undo()
+        out.modelNodes, out.addedSegmentIds, out.intermediateNodes = [], [], []
+        raise
+
+
+def _source_key(segmentationNode, segmentId) -> str:
+    return f"{segmentationNode.GetID()}/{segmentId}"
+
+
+def previous_output_models(scene, segmentationNode, segmentIds) -> dict:
+    """{segment ID: model node} of the models an earlier run made from these segments (their
+    SOURCE_SEGMENT_ATTRIBUTE), for a panel that replaces its previous results on a new run."""
+    wanted = {_source_key(segmentationNode, s): s for s in segmentIds}
+    found = {}
+    for n in range(scene.GetNumberOfNodesByClass("vtkMRMLModelNode")):
+        node = scene.GetNthNodeByClass(n, "vtkMRMLModelNode")
+        segmentId = wanted.get(node.GetAttribute(SOURCE_SEGMENT_ATTRIBUTE) or "")
+        if segmentId is not None and segmentId not in found:
+            found[segmentId] = node
+    return found
+
+
 def run_on_nodes(volumeNode, segmentationNode, segmentId, outputModelNode=None, params=None,
                  progress=None, scene=None, *, addAsSegment: bool = False,
                  showIntermediates: bool = False, colorByDistance: bool = False,
-                 modelName: Optional[str] = None):
+                 modelName: Optional[str] = None, neighbours="auto"):
     """Reconstruct the watertight surface of one bone from MRML nodes.
 
-    Returns ``(modelNode, result)``. The scene is only modified after the pipeline succeeded;
+    Returns ``(modelNode, result)`` (a ReconstructionResult). Every other segment of the
+    segmentation is a neighbour by default (``neighbours="auto"``: they compete for the joint
+    and the surface never enters them); ``neighbours="none"`` reconstructs the segment alone,
+    a list of segment IDs uses those. The scene is only modified after the pipeline succeeded;
     any error (bad input, reconstruction failure, cancel) propagates with the scene unchanged.
     ``progress(fraction, message)`` is called from the first moment (CT and segment export,
     the open3d import) and throughout the pipeline; returning False cancels. Closing the
     scene, or removing an input or the output node, during the run cancels it
     (CancelledError) and nothing is written (:class:`RunGuard`).
     """
-    parameters = _as_parameters(params)
-    if showIntermediates and not parameters.keep_intermediates:
-        parameters = parameters.replace(keep_intermediates=True)
-    parameters.validate()
-    if scene is None:
-        scene = (volumeNode.GetScene() if volumeNode is not None else None) or (
-            segmentationNode.GetScene() if segmentationNode is not None else None)
-    if scene is None:
-        raise InputError("The input nodes are not in a scene.")
-    if outputModelNode is not None and not outputModelNode.IsA("vtkMRMLModelNode"):
-        raise InputError("The output node must be a model node.")
-
-    with RunGuard(scene, (volumeNode, segmentationNode, outputModelNode)) as guard:
-        report = RunProgress(progress, guard)
-        ct, mask = export_inputs(volumeNode, segmentationNode, segmentId, report)
-        # late: input errors are reported even where the pipeline's deps are missing
-        pipeline = load_pipeline(report)
-        result = pipeline.reconstruct(ct, mask, parameters, report.pipeline())
-        guard.check()  # the scene may have closed after the last progress report
-        return _store_result(scene, result, segmentationNode, segmentId, outputModelNode,
-                             addAsSegment=addAsSegment, showIntermediates=showIntermediates,
-                             colorByDistance=colorByDistance, modelName=modelName)
+    _check_segment(segmentationNode, segmentId)
+    out = run_many_on_nodes(volumeNode, segmentationNode, [segmentId], [outputModelNode], params,
+                            progress, scene, neighbours=neighbours, addAsSegments=addAsSegment,
+                            showIntermediates=showIntermediates, colorByDistance=colorByDistance,
+                            modelNames=[modelName])
+    return out.modelNodes[0], out.result.bones[0]
 
 
-def _store_result(scene, result, segmentationNode, segmentId, outputModelNode, *,
-                  addAsSegment, showIntermediates, colorByDistance, modelName):
-    """Success: only now touch the scene (model, report attribute, segment, intermediates)."""
-    if outputModelNode is None:
-        segName = segmentationNode.GetSegmentation().GetSegment(segmentId).GetName()
-        name = modelName or scene.GenerateUniqueName(f"{segName} watertight")
-        outputModelNode = scene.AddNewNodeByClass("vtkMRMLModelNode", name)
-    surface = result.surface
-    if DISTANCE_ARRAY not in surface.point_data and result.distance_to_constraints is not None:
-        d = np.asarray(result.distance_to_constraints, dtype=np.float64)
-        if d.shape == (surface.n_vertices,):
-            surface = surface.copy()
-            surface.point_data[DISTANCE_ARRAY] = d
-    update_model_node(outputModelNode, surface, colorByDistance=colorByDistance)
-    outputModelNode.SetAttribute(REPORT_ATTRIBUTE, to_json(result.report))
-    if addAsSegment:
-        segName = segmentationNode.GetSegmentation().GetSegment(segmentId).GetName()
-        add_surface_as_segment(segmentationNode, surface, f"{segName} watertight")
-    if showIntermediates and getattr(result, "intermediates", None):
-        add_intermediate_nodes(scene, result.intermediates)
-    return outputModelNode, result
+def _segments_mask(volumeNode, segmentationNode, segmentIds) -> sitk.Image:
+    if isinstance(segmentIds, str):
+        segmentIds = [segmentIds]
+    labels = segments_to_sitk_labels(segmentationNode, list(segmentIds), volumeNode)
+    return sitk.Cast(sitk.NotEqual(labels.image, 0), sitk.sitkUInt8)
 
 
-def propose_thresholds(volumeNode, segmentationNode, segmentId: str, theta_max: float = 2500.0) -> dict:
-    """H0/HT proposal from the HU histogram in and around the segment (see autothreshold)."""
+def propose_thresholds(volumeNode, segmentationNode, segmentId, theta_max: float = 2500.0) -> dict:
+    """H0/HT proposal from the HU histogram in and around the segment (or the union of several
+    segments: a list of IDs), see autothreshold."""
     from .stages.autothreshold import propose_thresholds as _propose
 
     ct = volume_to_sitk(volumeNode)
-    mask = segment_to_sitk_mask(segmentationNode, segmentId, volumeNode)
-    return _propose(ct, mask, theta_max=theta_max)
+    return _propose(ct, _segments_mask(volumeNode, segmentationNode, segmentId), theta_max=theta_max)
 
 
 # ---------------------------------------------------------------------------------------
@@ -775,20 +1498,32 @@ def _transform_key(node):
     return tuple(key)
 
 
-def _preview_source_key(volumeNode, segmentationNode, segmentId):
-    """Changes whenever the voxels, the geometry or the segment that the preview's cached
+def _segment_id_list(segmentIds) -> list:
+    """A segment ID or a sequence of them, as a list ([] for none)."""
+    if not segmentIds:
+        return []
+    if isinstance(segmentIds, str):
+        return [segmentIds]
+    return [s for s in segmentIds if s]
+
+
+def _preview_source_key(volumeNode, segmentationNode, segmentIds):
+    """Changes whenever the voxels, the geometry or the segments that the preview's cached
     crop was made from change (MTimes are cheap to read: microseconds)."""
     image = volumeNode.GetImageData()
     key = [volumeNode.GetID(), volumeNode.GetMTime(), image.GetMTime() if image is not None else None,
            _transform_key(volumeNode)]
-    if segmentationNode is not None and segmentId:
+    ids = _segment_id_list(segmentIds)
+    if segmentationNode is not None and ids:
         segmentation = segmentationNode.GetSegmentation()
-        segment = segmentation.GetSegment(segmentId)
-        source = (segment.GetRepresentation(segmentation.GetSourceRepresentationName())
-                  if segment is not None else None)
-        key += [segmentationNode.GetID(), segmentId, segmentationNode.GetMTime(),
-                segmentation.GetMTime(), segment.GetMTime() if segment is not None else None,
-                source.GetMTime() if source is not None else None, _transform_key(segmentationNode)]
+        key += [segmentationNode.GetID(), segmentationNode.GetMTime(), segmentation.GetMTime(),
+                _transform_key(segmentationNode)]
+        for segmentId in ids:
+            segment = segmentation.GetSegment(segmentId)
+            source = (segment.GetRepresentation(segmentation.GetSourceRepresentationName())
+                      if segment is not None else None)
+            key += [segmentId, segment.GetMTime() if segment is not None else None,
+                    source.GetMTime() if source is not None else None]
     return tuple(key)
 
 
@@ -822,27 +1557,32 @@ class ThresholdPreview:
         self._key = None
         self._values = self._labels = self._scratch = None
 
-    def _crop_box(self, volumeNode, segmentationNode, segmentId, image):
-        """IJK extent of the volume (its own grid) to preview: the segment's box + margin."""
+    def _crop_box(self, volumeNode, segmentationNode, segmentIds, image):
+        """IJK extent of the volume (its own grid) to preview: the segments' box + margin."""
         extent = list(image.GetExtent())
-        if segmentationNode is None or not segmentId:
+        ids = _segment_id_list(segmentIds)
+        if segmentationNode is None or not ids:
             return extent
         ijk_to_world = _ijk_to_world(volumeNode)
         if ijk_to_world is None:  # non-linear transform: the volume's IJK has no world box
             return extent
-        _check_segment(segmentationNode, segmentId)
+        for segmentId in ids:
+            _check_segment(segmentationNode, segmentId)
         reference = slicer.vtkOrientedImageData()
         reference.SetExtent(extent)
         reference.SetImageToWorldMatrix(_np_to_vtk_matrix(ijk_to_world))
-        labelmap, label = _segment_labelmap_world(segmentationNode, segmentId, reference)
         spacing = np.linalg.norm(ijk_to_world[:3, :3], axis=0)
         margin = np.ceil(self.margin_mm / spacing).astype(int)
-        box = _segment_box_on_grid(labelmap, label, ijk_to_world, extent, margin_voxels=margin)
-        if box is None:
+        boxes = []
+        for labelmap, values in _labelmap_layers_world(segmentationNode, ids, reference):
+            found = _label_boxes(labelmap, values.values())
+            boxes += [_box_on_grid(found[int(v)], labelmap, ijk_to_world, extent, margin_voxels=margin)
+                      for v in values.values()]
+        if all(b is None for b in boxes):
             raise EmptySegmentError("The segment is empty: nothing to preview.")
-        if box is False:
+        if not any(boxes):
             raise NoOverlapError("The segment does not overlap the volume: nothing to preview.")
-        return box
+        return _union_box(boxes)
 
     def _build(self, volumeNode, segmentationNode, segmentId, key) -> None:
         image = _check_volume_node(volumeNode)
@@ -904,9 +1644,10 @@ class ThresholdPreview:
 
     # -- the per-drag-step work
 
-    def update(self, volumeNode, segmentationNode, segmentId: str, h0: float, ht: float,
+    def update(self, volumeNode, segmentationNode, segmentId, h0: float, ht: float,
                theta_max: float):
-        """Show [HT, H0) and [H0, theta_max] around the segment; returns the label map node."""
+        """Show [HT, H0) and [H0, theta_max] around the segment (a segment ID, or a list of
+        them: around all of them); returns the label map node."""
         key = _preview_source_key(volumeNode, segmentationNode, segmentId)
         if key != self._key or self.labelmapNode is None or self.labelmapNode.GetScene() is not self.scene:
             self._build(volumeNode, segmentationNode, segmentId, key)
