@@ -3,7 +3,7 @@ import os
 import pathlib
 import sys
 import time
-from typing import Annotated, Optional
+from typing import Annotated, Optional, Sequence, Union
 
 import ctk
 import qt
@@ -65,8 +65,10 @@ class BoneWatertight(ScriptedLoadableModule):
         self.parent.dependencies = ["Segmentations"]
         self.parent.contributors = ["BoneWatertight developers"]
         self.parent.helpText = _("""
-Reconstructs a closed (watertight), 2-manifold and accurate surface model of one bone from a CT
-volume and a rough segment of that bone, following the method of
+Reconstructs a closed (watertight), 2-manifold and accurate surface model of a bone from a CT
+volume and a rough segment of that bone; several bones checked in the segment list are
+reconstructed together (one model each; no surface enters another, the joint gap is kept, and
+the other segments of the segmentation compete as neighbours). It follows the method of
 "Watertight 2-manifold 3D bone surface model reconstruction from CT images based on visual
 hyper-spherical mapping": two-step thresholding, visible-point extraction by hyper-spherical
 mapping, screened Poisson reconstruction and constrained Laplacian deformation. Every output is
@@ -155,16 +157,22 @@ def withLibraryParameters(cls):
 class BoneWatertightParameterNode:
     """Every input, option and algorithm parameter.
 
-    inputVolume - CT volume (HU). inputSegmentation/segmentId - the rough bone segment (segment
-    selector synced by hand: the wrapper has no connector for it). outputModel - result model.
-    preset - the last preset chosen. addAsSegment, showIntermediates, colorByDistance - outputs.
-    The algorithm parameters (spacing, h0, ht, ...) are added by withLibraryParameters from the
-    library's schema; for those whose schema allows "auto" the slider's sentinel (0) means auto.
+    inputVolume - CT volume (HU). inputSegmentation/segmentIds - the segmentation and the bone
+    segments chosen in it (segment selector in multi-selection mode, synced by hand: the wrapper
+    has no connector for it); segmentId - the first of them (what a parameter node of an older
+    version holds: it is adopted when segmentIds is empty). neighbours - the other segments
+    compete as neighbours. outputModel - result model of a one-bone run (several bones: one
+    model each, found again by their source segment). preset - the last preset chosen.
+    addAsSegment, showIntermediates, colorByDistance - outputs. The algorithm parameters
+    (spacing, h0, ht, ...) are added by withLibraryParameters from the library's schema; for
+    those whose schema allows "auto" the slider's sentinel (0) means auto.
     """
 
     inputVolume: vtkMRMLScalarVolumeNode
     inputSegmentation: vtkMRMLSegmentationNode
+    segmentIds: list[str]
     segmentId: str = ""
+    neighbours: bool = True
     outputModel: vtkMRMLModelNode
     preset: Annotated[str, Choice(PRESET_NAMES)] = "custom"
     addAsSegment: bool = False
@@ -211,6 +219,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._previewTimer = None
         self._savedViewState = None
         self._updatingSegmentSelector = False
+        self._segmentationShown = None  # the segmentation whose segments the selector last showed
         self._connectingGui = False  # connectGui writes the sliders: no preview for that
 
     def setup(self) -> None:
@@ -226,9 +235,10 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
 
-        # The segment selector has no parameter-node connector: sync it by hand.
+        # The segment selector (multi-selection: one bone, or several reconstructed together)
+        # has no parameter-node connector: sync it by hand.
         self.ui.segmentSelector.connect("currentNodeChanged(vtkMRMLNode*)", self.onSegmentSelectorChanged)
-        self.ui.segmentSelector.connect("currentSegmentChanged(QString)", self.onSegmentSelectorChanged)
+        self.ui.segmentSelector.connect("segmentSelectionChanged(QStringList)", self.onSegmentSelectorChanged)
         # activated(): user choices only. The parameter-node connector rewrites this combo on every
         # connectGui/scene load, and re-applying a stored preset then would undo the user's edits.
         self.ui.presetComboBox.connect("activated(int)", self.onPresetChanged)
@@ -343,44 +353,69 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._checkCanApply()
 
     def _syncSegmentSelectorFromParameterNode(self) -> None:
+        """Parameter node -> selector (segmentation, checked segments). What the selector shows
+        is adopted back: the stored choice, else the one segment of an older parameter node,
+        else, when a segmentation was just chosen, its first segment (as the single-segment
+        selector did, so Apply is ready for one bone at once)."""
         if self._parameterNode is None or self._updatingSegmentSelector:
             return
+        from BoneWatertightLib import mrml
+
+        p = self._parameterNode
+        seg = p.inputSegmentation
         self._updatingSegmentSelector = True
         try:
-            seg = self._parameterNode.inputSegmentation
             if self.ui.segmentSelector.currentNode() != seg:
                 self.ui.segmentSelector.setCurrentNode(seg)
-            if seg and self._parameterNode.segmentId and \
-                    self.ui.segmentSelector.currentSegmentID() != self._parameterNode.segmentId:
-                self.ui.segmentSelector.setCurrentSegmentID(self._parameterNode.segmentId)
+            ids = mrml.segment_selection(seg, list(p.segmentIds), p.segmentId,
+                                         pickFirst=seg is not None and seg != self._segmentationShown)
+            self._segmentationShown = seg
+            if seg is not None and list(self.ui.segmentSelector.selectedSegmentIDs()) != ids:
+                self.ui.segmentSelector.setSelectedSegmentIDs(ids)
         finally:
             self._updatingSegmentSelector = False
-        # Given a new node, the selector picks a segment itself (its signals were ignored above);
-        # adopt that choice, else segmentId stays "" while a segment is shown and Apply stays off.
-        shownSegmentId = (self.ui.segmentSelector.currentSegmentID() or "") if seg else ""
-        if shownSegmentId != self._parameterNode.segmentId:
-            self._parameterNode.segmentId = shownSegmentId
+        self._storeSegmentSelection(seg, ids)
+
+    def _storeSegmentSelection(self, seg, ids) -> None:
+        p = self._parameterNode
+        first = ids[0] if ids else ""
+        if p.inputSegmentation != seg or list(p.segmentIds) != ids or p.segmentId != first:
+            with slicer.util.NodeModify(p):
+                p.inputSegmentation = seg
+                p.segmentIds = ids
+                p.segmentId = first  # what older versions of the module read
 
     def onSegmentSelectorChanged(self, *args) -> None:
+        """Selector -> parameter node: a segmentation chosen, segments checked or unchecked."""
         if self._parameterNode is None or self._updatingSegmentSelector:
             return
+        seg = self.ui.segmentSelector.currentNode()
+        ids = list(self.ui.segmentSelector.selectedSegmentIDs()) if seg else []
         self._updatingSegmentSelector = True
         try:
-            with slicer.util.NodeModify(self._parameterNode):
-                self._parameterNode.inputSegmentation = self.ui.segmentSelector.currentNode()
-                self._parameterNode.segmentId = self.ui.segmentSelector.currentSegmentID() or ""
+            self._storeSegmentSelection(seg, ids)
         finally:
             self._updatingSegmentSelector = False
+        self._syncSegmentSelectorFromParameterNode()  # a new segmentation: its first segment
         self._checkCanApply()
+
+    def _chosenSegmentIds(self) -> list:
+        p = self._parameterNode
+        return list(p.segmentIds) if p is not None else []
 
     def _checkCanApply(self, caller=None, event=None) -> None:
         p = self._parameterNode
-        ok = bool(p and p.inputVolume and p.inputSegmentation and p.segmentId)
+        ids = self._chosenSegmentIds()
+        ok = bool(p and p.inputVolume and p.inputSegmentation and ids)
         state = self._applyGuard.button(ok)
         self.ui.applyButton.text = _(state.text)
         self.ui.applyButton.enabled = state.enabled
         self.ui.applyButton.toolTip = _(state.tooltip)
         self.ui.autoThresholdButton.enabled = ok and not self._applyGuard.busy
+        # several bones: one model each (named after its segment) instead of the output model
+        several = len(ids) > 1
+        self.ui.outputModelSelector.enabled = not several
+        self.ui.outputNoteLabel.visible = several
 
     # --- presets and thresholds
 
@@ -399,7 +434,9 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         with slicer.util.tryWithErrorDisplay(_("Could not propose thresholds."), waitCursor=True):
             from BoneWatertightLib import mrml
 
-            proposal = mrml.propose_thresholds(p.inputVolume, p.inputSegmentation, p.segmentId, p.theta_max)
+            # several bones: from the union of their segments (the pipeline's auto does the same)
+            proposal = mrml.propose_thresholds(p.inputVolume, p.inputSegmentation, self._chosenSegmentIds(),
+                                               p.theta_max)
             # the proposal may leave the fields' declared ranges (theta_max on extended-HU CT
             # with metal): clamp to the schema, keeping HT < H0 < theta_max
             values, notes = clamp_threshold_proposal(proposal)
@@ -435,7 +472,8 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         try:
             if self._preview is None or self._preview.scene is not slicer.mrmlScene:
                 self._preview = mrml.ThresholdPreview(slicer.mrmlScene)
-            previewNode = self._preview.update(p.inputVolume, p.inputSegmentation, p.segmentId, h0, ht, tmax)
+            previewNode = self._preview.update(p.inputVolume, p.inputSegmentation, self._chosenSegmentIds(),
+                                               h0, ht, tmax)
         except Exception as exc:  # a preview must never interrupt the user; say why it is missing
             self.ui.statusLabel.text = _("Preview unavailable: {error}").format(error=exc)
             return
@@ -563,23 +601,37 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             return
         self.ui.resultLabel.text = ""
         start = time.time()
+        from BoneWatertightLib import mrml
         from BoneWatertightLib.errors import CancelledError
 
+        ids = self._chosenSegmentIds()
+        several = len(ids) > 1
+        # one bone: the chosen output model (None: a new one, kept for the next run); several:
+        # one model each, replacing those an earlier run made from the same segments
+        outputs = (mrml.previous_output_models(slicer.mrmlScene, p.inputSegmentation, ids) if several
+                   else [p.outputModel])
         try:
             with self._applyGuard.running():
                 self._showRunning(True)
-                model, result = self.logic.processWithResult(
-                    p.inputVolume, p.inputSegmentation, p.segmentId, p.outputModel,
-                    progressCallback=self._progress, addAsSegment=p.addAsSegment,
+                out = self.logic.processManyWithResult(
+                    p.inputVolume, p.inputSegmentation, ids, outputs, progressCallback=self._progress,
+                    neighbours="auto" if p.neighbours else "none", addAsSegments=p.addAsSegment,
                     showIntermediates=p.showIntermediates, colorByDistance=p.colorByDistance,
                     **parametersFromNode(p))
-            p.outputModel = model
-            from BoneWatertightLib import mrml
-
-            summary = mrml.summarize(result)
-            self.ui.resultLabel.text = summary
-            self.ui.statusLabel.text = _("Done in {seconds:.1f} s.").format(seconds=time.time() - start)
-            self._log(summary)
+            if not several:
+                p.outputModel = out.modelNodes[0]
+            lines = out.summaryLines()
+            self.ui.resultLabel.text = "\n".join(lines)
+            seconds = time.time() - start
+            if out.warnings:
+                # on_implausible = warn: the surfaces are stored; say plainly that one may be wrong
+                self.ui.statusLabel.text = _(
+                    "Done in {seconds:.1f} s with {count} warning(s): a surface may be the wrong shape "
+                    "(see the result below).").format(seconds=seconds, count=len(out.warnings))
+            else:
+                self.ui.statusLabel.text = _("Done in {seconds:.1f} s.").format(seconds=seconds)
+            for line in lines:
+                self._log(line)
         except CancelledError as exc:  # Cancel, or the scene closed / an input was removed
             self.ui.statusLabel.text = str(exc)
             self._log(f"Cancelled: {exc}")
@@ -601,7 +653,9 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
     """Thin Slicer logic: all computation is in BoneWatertightLib (pipeline + the mrml adapter).
 
     Works without the widget, e.g. from the Python console or a batch script:
-    ``BoneWatertightLogic().process(ctNode, segNode, segmentId, h0=300, ht=150)``.
+    ``BoneWatertightLogic().process(ctNode, segNode, segmentId, h0=300, ht=150)`` for one bone,
+    ``BoneWatertightLogic().processMany(ctNode, segNode, [femurId, hipId])`` for several bones
+    reconstructed together (one model each, no surface entering another).
     """
 
     def __init__(self) -> None:
@@ -610,54 +664,123 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
     def getParameterNode(self):
         return BoneWatertightParameterNode(super().getParameterNode())
 
-    def process(self, volumeNode: vtkMRMLScalarVolumeNode, segmentationNode: vtkMRMLSegmentationNode,
-                segmentId: str, outputModelNode: Optional[vtkMRMLModelNode] = None, progressCallback=None,
-                addAsSegment: bool = False, showIntermediates: bool = False, colorByDistance: bool = True,
-                preset: Optional[str] = None, **parameters) -> vtkMRMLModelNode:
-        """Reconstruct the watertight bone surface into a model node.
-
-        :param volumeNode: CT volume (vtkMRMLScalarVolumeNode, HU).
-        :param segmentationNode: segmentation holding the rough bone segment.
-        :param segmentId: ID of the bone segment.
-        :param outputModelNode: model to replace on success; a new one is created if None.
-        :param progressCallback: callback(fraction, message); returning False cancels.
-        :param addAsSegment: also add the surface to the segmentation as a new segment.
-        :param showIntermediates: add the intermediate point sets and M0 as model nodes.
-        :param colorByDistance: colour the model by the per-vertex distance to the constraints.
-        :param preset: "femur", "hip" or "vertebra": sets its own fields; explicit parameters override it.
-        :param parameters: fields of BoneWatertightLib.params.Parameters (h0, ht, theta_max, ...),
-            checked against the library's schema (type and range).
-        :return: the model node.
-        :raises BoneWatertightLib.errors.InputError: (a ValueError) bad inputs; the scene is unchanged.
-        :raises BoneWatertightLib.errors.CancelledError: progressCallback returned False, or the
-            scene was closed (or an input or the output node removed) during the run; nothing
-            was written.
-        """
-        model, _result = self.processWithResult(
-            volumeNode, segmentationNode, segmentId, outputModelNode, progressCallback, addAsSegment,
-            showIntermediates, colorByDistance, preset, **parameters)
-        return model
-
-    def processWithResult(self, volumeNode, segmentationNode, segmentId, outputModelNode=None,
-                          progressCallback=None, addAsSegment=False, showIntermediates=False,
-                          colorByDistance=True, preset=None, **parameters):
-        """As process(), returning (model node, BoneWatertightLib ReconstructionResult with its typed report)."""
-        from BoneWatertightLib import mrml
+    @staticmethod
+    def _parameters(preset: Optional[str], parameters: dict):
         from BoneWatertightLib.params import Parameters, apply_preset
 
         params = Parameters()
         if preset and preset != "custom":
             params = apply_preset(params, preset)
-        params = params.replace(**parameters)
+        return params.replace(**parameters)
+
+    def process(self, volumeNode: vtkMRMLScalarVolumeNode, segmentationNode: vtkMRMLSegmentationNode,
+                segmentId: Union[str, Sequence[str]], outputModelNode=None, progressCallback=None,
+                addAsSegment: bool = False, showIntermediates: bool = False, colorByDistance: bool = True,
+                preset: Optional[str] = None, neighbours: Union[str, Sequence[str]] = "auto",
+                **parameters):
+        """Reconstruct the watertight bone surface into a model node.
+
+        :param volumeNode: CT volume (vtkMRMLScalarVolumeNode, HU).
+        :param segmentationNode: segmentation holding the rough bone segment.
+        :param segmentId: ID of the bone segment; a list of IDs reconstructs those bones
+            together (as processMany) and returns a list of model nodes.
+        :param outputModelNode: model to replace on success; a new one is created if None
+            (with a list of segments: None, a list of models or a dict segment ID -> model).
+        :param progressCallback: callback(fraction, message); returning False cancels.
+        :param addAsSegment: also add the surface to the segmentation as a new segment.
+        :param showIntermediates: add the intermediate point sets and M0 as model nodes.
+        :param colorByDistance: colour the model by the per-vertex distance to the constraints.
+        :param preset: "femur", "hip" or "vertebra": sets its own fields; explicit parameters override it.
+        :param neighbours: "auto" (default): every other segment of the segmentation is a
+            neighbour that competes for the joint (the surface never enters it); "none": the
+            segment alone; or a list of segment IDs.
+        :param parameters: fields of BoneWatertightLib.params.Parameters (h0, ht, theta_max, ...),
+            checked against the library's schema (type and range).
+        :return: the model node (a list of them for a list of segments).
+        :raises BoneWatertightLib.errors.InputError: (a ValueError) bad inputs; the scene is unchanged.
+        :raises BoneWatertightLib.errors.ReconstructionError: no valid or no plausible surface
+            (PlausibilityError: watertight but the wrong shape; on_implausible="warn" returns it
+            with warnings instead); the scene is unchanged.
+        :raises BoneWatertightLib.errors.CancelledError: progressCallback returned False, or the
+            scene was closed (or an input or the output node removed) during the run; nothing
+            was written.
+        """
+        if not isinstance(segmentId, str) and segmentId is not None:
+            return self.processMany(volumeNode, segmentationNode, list(segmentId), outputModelNode,
+                                    progressCallback, neighbours, addAsSegment, showIntermediates,
+                                    colorByDistance, preset, **parameters)
+        model, _result = self.processWithResult(
+            volumeNode, segmentationNode, segmentId, outputModelNode, progressCallback, addAsSegment,
+            showIntermediates, colorByDistance, preset, neighbours=neighbours, **parameters)
+        return model
+
+    def processWithResult(self, volumeNode: vtkMRMLScalarVolumeNode,
+                          segmentationNode: vtkMRMLSegmentationNode, segmentId: str,
+                          outputModelNode: Optional[vtkMRMLModelNode] = None, progressCallback=None,
+                          addAsSegment: bool = False, showIntermediates: bool = False,
+                          colorByDistance: bool = True, preset: Optional[str] = None,
+                          neighbours: Union[str, Sequence[str]] = "auto", **parameters):
+        """As process() for one segment, returning (model node, BoneWatertightLib
+        ReconstructionResult with its typed report)."""
+        from BoneWatertightLib import mrml
+
+        params = self._parameters(preset, parameters)
         startTime = time.time()
         logging.info("BoneWatertight: processing started")
         model, result = mrml.run_on_nodes(
             volumeNode, segmentationNode, segmentId, outputModelNode=outputModelNode, params=params,
             progress=progressCallback, addAsSegment=addAsSegment, showIntermediates=showIntermediates,
-            colorByDistance=colorByDistance)
+            colorByDistance=colorByDistance, neighbours=neighbours)
         logging.info(f"BoneWatertight: processing completed in {time.time() - startTime:.2f} s: "
                      f"{mrml.summarize(result)}")
         return model, result
+
+    def processMany(self, volumeNode: vtkMRMLScalarVolumeNode, segmentationNode: vtkMRMLSegmentationNode,
+                    segmentIds: Sequence[str], outputModelNodes=None, progressCallback=None,
+                    neighbours: Union[str, Sequence[str]] = "auto", addAsSegments: bool = False,
+                    showIntermediates: bool = False, colorByDistance: bool = True,
+                    preset: Optional[str] = None, **parameters) -> list:
+        """Reconstruct several bones of one segmentation together: one model node per bone.
+
+        The bones compete for their joints (and, by default, with every other segment of the
+        segmentation as a neighbour); no surface enters another and the joint gap is kept
+        (min_gap). Each surface passes every check on its own and every pair is checked.
+
+        :param segmentIds: IDs of the bone segments (one model each, in this order).
+        :param outputModelNodes: None (new models "<segment> watertight"), a list aligned with
+            segmentIds (None entries: new) or a dict segment ID -> model node; replaced on success.
+        :param neighbours: "auto" (default, every other segment), "none" or a list of segment IDs.
+        :param addAsSegments: also write the surfaces into the segmentation as new segments
+            "<segment> watertight" that share one label map layer (no voxel in two of them).
+        :param progressCallback, showIntermediates, colorByDistance, preset, parameters: as process().
+        :return: list of model nodes, one per segment ID.
+        :raises: as process(); a failure of any bone leaves the scene unchanged.
+        """
+        return self.processManyWithResult(volumeNode, segmentationNode, segmentIds, outputModelNodes,
+                                          progressCallback, neighbours, addAsSegments, showIntermediates,
+                                          colorByDistance, preset, **parameters).modelNodes
+
+    def processManyWithResult(self, volumeNode: vtkMRMLScalarVolumeNode,
+                              segmentationNode: vtkMRMLSegmentationNode, segmentIds: Sequence[str],
+                              outputModelNodes=None, progressCallback=None,
+                              neighbours: Union[str, Sequence[str]] = "auto", addAsSegments: bool = False,
+                              showIntermediates: bool = False, colorByDistance: bool = True,
+                              preset: Optional[str] = None, **parameters):
+        """As processMany(), returning BoneWatertightLib.mrml.JointNodesResult: ``modelNodes``,
+        ``addedSegmentIds``, ``neighbourSegmentIds``, ``warnings``, ``summaryLines()`` and the
+        pipeline's JointResult (``result.bones[i].report``, ``result.pairs``)."""
+        from BoneWatertightLib import mrml
+
+        params = self._parameters(preset, parameters)
+        startTime = time.time()
+        logging.info(f"BoneWatertight: processing {len(segmentIds)} bone(s) started")
+        out = mrml.run_many_on_nodes(
+            volumeNode, segmentationNode, list(segmentIds), outputModelNodes, params,
+            progress=progressCallback, neighbours=neighbours, addAsSegments=addAsSegments,
+            showIntermediates=showIntermediates, colorByDistance=colorByDistance)
+        logging.info(f"BoneWatertight: processing completed in {time.time() - startTime:.2f} s:\n"
+                     + "\n".join(out.summaryLines()))
+        return out
 
 
 #
@@ -666,10 +789,11 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
 
 
 class BoneWatertightTest(ScriptedLoadableModuleTest):
-    """Synthetic CT (a capsule of ~1000 HU in ~40 HU, oblique geometry) + rough segment; no downloads.
+    """Synthetic CTs (oblique geometry, ~1000 HU in ~40 HU, noise), no downloads: a capsule with
+    a rough segment, and two balls 1.5 mm apart whose segments are reconstructed together.
 
-    The reconstruction needs open3d, which no extension build step installs: the capsule test
-    installs it once with pip (BONEWATERTIGHT_TEST_INSTALL=0: never) and otherwise skips,
+    The reconstruction needs open3d, which no extension build step installs: those tests
+    install it once with pip (BONEWATERTIGHT_TEST_INSTALL=0: never) and otherwise skip,
     saying why; the bad-input test needs no open3d and always runs.
     """
 
@@ -681,12 +805,13 @@ class BoneWatertightTest(ScriptedLoadableModuleTest):
 
         self.setUp()
         self.test_BoneWatertight_bad_input_leaves_scene()
-        self.setUp()
-        try:
-            self.test_BoneWatertight_capsule()
-        except unittest.SkipTest as skip:  # "Reload and Test": say so instead of failing
-            logging.warning(str(skip))
-            self.delayDisplay(str(skip))
+        for test in (self.test_BoneWatertight_capsule, self.test_BoneWatertight_two_bones):
+            self.setUp()
+            try:
+                test()
+            except unittest.SkipTest as skip:  # "Reload and Test": say so instead of failing
+                logging.warning(str(skip))
+                self.delayDisplay(str(skip))
 
     def _requireOpen3d(self):
         """Install open3d for the test if allowed, else skip (unittest.SkipTest) with the reason."""
@@ -761,6 +886,62 @@ class BoneWatertightTest(ScriptedLoadableModuleTest):
         self.delayDisplay(f"{len(points)} vertices, max |error| {np.abs(dist).max():.2f} mm")
         self.assertLess(np.abs(dist).max(), 1.0)
         self.assertIsNotNone(model.GetDisplayNode())
+        self.delayDisplay("Test passed")
+
+    def _makeTwoBones(self):
+        """Two balls (radius 6 mm) 1.5 mm apart on an oblique grid, one segment each, plus the
+        segmentation's own label map values 1 and 2."""
+        import numpy as np
+
+        dims = (44, 24, 24)  # i, j, k
+        angle = np.radians(25.0)
+        rot = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+        ijkToRas = np.eye(4)
+        ijkToRas[:3, :3] = rot @ np.diag([-1.0, -1.0, 1.0]) @ np.diag([0.9, 1.0, 1.0])
+        centre = np.array([-5.0, 12.0, 30.0])
+        mid = np.array([(d - 1) / 2 for d in dims] + [1.0])
+        ijkToRas[:3, 3] = centre - (ijkToRas @ mid)[:3]
+        k, j, i = np.meshgrid(*(np.arange(d) for d in dims[::-1]), indexing="ij")
+        ras = (np.stack([i, j, k, np.ones_like(i)], -1) @ ijkToRas.T)[..., :3]
+        axis = ijkToRas[:3, 0] / np.linalg.norm(ijkToRas[:3, 0])
+        self.radius = 6.0
+        self.balls = [centre - 6.75 * axis, centre + 6.75 * axis]
+        dist = [np.linalg.norm(ras - c, axis=-1) for c in self.balls]
+        edge = sum(0.5 * (1.0 - np.tanh((d - self.radius) / 0.5)) for d in dist)
+        noise = np.random.default_rng(4).normal(0.0, 8.0, edge.shape)
+        hu = np.round(40.0 + 960.0 * np.clip(edge, 0, 1) + noise).astype(np.int16)
+        volume = slicer.util.addVolumeFromArray(hu, name="Two balls CT")
+        volume.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(ijkToRas))
+        labels = np.zeros(hu.shape, np.uint8)
+        labels[dist[0] <= self.radius - 1.5] = 1
+        labels[dist[1] <= self.radius - 1.5] = 2
+        label = slicer.util.addVolumeFromArray(labels, name="rough", nodeClassName="vtkMRMLLabelMapVolumeNode")
+        label.SetIJKToRASMatrix(slicer.util.vtkMatrixFromArray(ijkToRas))
+        segmentation = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLSegmentationNode", "Two bones")
+        slicer.modules.segmentations.logic().ImportLabelmapToSegmentationNode(label, segmentation)
+        slicer.mrmlScene.RemoveNode(label)
+        s = segmentation.GetSegmentation()
+        ids = sorted((s.GetNthSegmentID(n) for n in range(s.GetNumberOfSegments())),
+                     key=lambda segmentId: s.GetSegment(segmentId).GetLabelValue())
+        return volume, segmentation, ids
+
+    def test_BoneWatertight_two_bones(self):
+        import numpy as np
+
+        self._requireOpen3d()
+        self.delayDisplay("Building two balls 1.5 mm apart")
+        volume, segmentation, segmentIds = self._makeTwoBones()
+        logic = BoneWatertightLogic()
+        models = logic.processMany(volume, segmentation, segmentIds, spacing=0.6, h0=500.0, ht=300.0,
+                                   addAsSegments=True)
+        self.assertEqual(len(models), 2)
+        for model, centre, other in zip(models, self.balls, self.balls[::-1]):
+            points = slicer.util.arrayFromModelPoints(model)
+            radial = np.linalg.norm(points - centre, axis=1) - self.radius
+            self.assertLess(np.abs(radial).max(), 1.0)
+            # no vertex of one bone inside the other
+            self.assertEqual(int((np.linalg.norm(points - other, axis=1) < self.radius).sum()), 0)
+        self.assertEqual(segmentation.GetSegmentation().GetNumberOfSegments(), 4)
         self.delayDisplay("Test passed")
 
     def test_BoneWatertight_bad_input_leaves_scene(self):

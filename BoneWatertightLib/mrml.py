@@ -1455,6 +1455,25 @@ def run_on_nodes(volumeNode, segmentationNode, segmentId, outputModelNode=None, 
     return out.modelNodes[0], out.result.bones[0]
 
 
+def segment_selection(segmentationNode, segmentIds=(), segmentId: str = "",
+                      pickFirst: bool = False) -> list:
+    """The segments a panel shows as chosen in ``segmentationNode``: the stored ``segmentIds``
+    that exist in it (in their order), else the one ``segmentId`` of an older parameter node,
+    else, when ``pickFirst`` (the segmentation was just chosen), its first segment, as the
+    single-segment selector does; [] without a segmentation."""
+    if segmentationNode is None:
+        return []
+    segmentation = segmentationNode.GetSegmentation()
+    chosen = [s for s in dict.fromkeys(_segment_id_list(segmentIds)) if segmentation.GetSegment(s)]
+    if chosen:
+        return chosen
+    if segmentId and segmentation.GetSegment(segmentId) is not None:
+        return [segmentId]
+    if pickFirst and segmentation.GetNumberOfSegments():
+        return [segmentation.GetNthSegmentID(0)]
+    return []
+
+
 def _segments_mask(volumeNode, segmentationNode, segmentIds) -> sitk.Image:
     if isinstance(segmentIds, str):
         segmentIds = [segmentIds]

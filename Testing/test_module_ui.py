@@ -20,7 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 MODULE_PY = ROOT / "BoneWatertight" / "BoneWatertight.py"
 UI_FILE = ROOT / "BoneWatertight" / "Resources" / "UI" / "BoneWatertight.ui"
 # bound by hand (the parameter-node wrapper has no connector for qMRMLSegmentSelectorWidget)
-MANUAL_FIELDS = {"inputSegmentation": "segmentSelector", "segmentId": "segmentSelector"}
+MANUAL_FIELDS = {"inputSegmentation": "segmentSelector", "segmentId": "segmentSelector",
+                 "segmentIds": "segmentSelector"}
 
 
 def _ui_widgets():
@@ -114,6 +115,38 @@ def test_parameter_node_covers_every_library_parameter():
     assert "showIntermediates" in fields
 
 
+def test_panel_chooses_several_bones_and_their_neighbours():
+    """Issue 10 item 3: the segment selector is a multi-select (one bone = one checked
+    segment), "Other segments are neighbours" is on by default and bound to the parameter
+    node, the one output model is for one bone (a note says what several bones get)."""
+    _, widgets = _ui_widgets()
+
+    def prop(name, key):
+        return [p for p in widgets[name]["elem"].findall("property") if p.get("name") == key]
+
+    selector = widgets["segmentSelector"]
+    assert selector["cls"] == "qMRMLSegmentSelectorWidget"
+    assert [p.findtext("bool") for p in prop("segmentSelector", "multiSelection")] == ["true"]
+    box = widgets["neighboursCheckBox"]
+    assert box["cls"] == "QCheckBox" and box["param"] == "neighbours" and box["tip"]
+    assert [p.findtext("bool") for p in prop("neighboursCheckBox", "checked")] == ["true"]
+    assert prop("neighboursCheckBox", "text")[0].findtext("string") == "Other segments are neighbours"
+    note = widgets["outputNoteLabel"]
+    assert note["cls"] == "QLabel" and [p.findtext("bool") for p in prop("outputNoteLabel", "visible")] == ["false"]
+    # the parameter node: the chosen segments as a list, the neighbours switch on by default
+    tree = _module_ast()
+    cls = next(n for n in ast.walk(tree) if isinstance(n, ast.ClassDef) and n.name == "BoneWatertightParameterNode")
+    fields = {s.target.id: s for s in cls.body if isinstance(s, ast.AnnAssign)}
+    assert ast.unparse(fields["segmentIds"].annotation) == "list[str]"
+    assert ast.unparse(fields["neighbours"].annotation) == "bool" and fields["neighbours"].value.value is True
+    # each .ui row of a form layout is used once per column
+    for layout in ET.parse(UI_FILE).iter("layout"):
+        if layout.get("class") != "QFormLayout":
+            continue
+        cells = [(i.get("row"), i.get("column")) for i in layout.findall("item")]
+        assert len(cells) == len(set(cells)), layout.get("name")
+
+
 def _placeholder_ui(tmp_path):
     """Copy of the .ui with ctk/qMRML classes replaced by plain Qt ones (for the picture only)."""
     text = UI_FILE.read_text(encoding="utf-8")
@@ -130,7 +163,8 @@ def _placeholder_ui(tmp_path):
                 if cls == "ctkCollapsibleButton" and n == "text":
                     p.set("name", "title")
                 elif n in ("collapsed", "nodeTypes", "showChildNodeTypes", "addEnabled", "removeEnabled",
-                           "noneEnabled", "renameEnabled", "baseName", "editEnabled", "specialValueText"):
+                           "noneEnabled", "renameEnabled", "baseName", "editEnabled", "specialValueText",
+                           "multiSelection"):
                     w.remove(p)
     cw = root.find("customwidgets")
     if cw is not None:

@@ -263,8 +263,8 @@ def test_parameter_node_fields_match_the_schema():
             assert ranges == [(low, spec.maximum)], spec.name
     # the module's conversion back to library values comes from the schema as well
     assert "spec.from_panel(" in MODULE_PY.read_text(encoding="utf-8")
-    for name in ("inputVolume", "inputSegmentation", "segmentId", "outputModel", "preset",
-                 "addAsSegment", "showIntermediates", "colorByDistance"):
+    for name in ("inputVolume", "inputSegmentation", "segmentIds", "segmentId", "neighbours",
+                 "outputModel", "preset", "addAsSegment", "showIntermediates", "colorByDistance"):
         assert name in hints
     assert namespace["PRESET_NAMES"] == ["custom", *PRESETS]
 

@@ -469,3 +469,44 @@ def test_write_back_gives_each_contested_voxel_to_one_surface(scene):
     assert s.GetNumberOfLayers() == n_layers + 1 and s.GetLayerIndex(added[0]) == s.GetLayerIndex(added[1])
     masks = [sitk.GetArrayFromImage(mrml.segment_to_sitk_mask(seg, x, ct)) > 0 for x in added]
     assert masks[0].sum() > 100 and masks[1].sum() > 100 and not (masks[0] & masks[1]).any()
+
+
+# ---------------------------------------------------------------------------------------
+# the panel's helpers: which segments are chosen, preview and Auto on several
+# ---------------------------------------------------------------------------------------
+
+def test_segment_selection_of_the_panel(scene):
+    ct, seg, ids, _ = _build(scene)
+    a, b, c = ids["A"], ids["B"], ids["C"]
+    assert mrml.segment_selection(seg, [c, "S_gone", a, c]) == [c, a]  # stored, valid, once
+    assert mrml.segment_selection(seg, [], b) == [b]  # an older parameter node's one segment
+    assert mrml.segment_selection(seg, ["S_gone"], "S_gone") == []
+    assert mrml.segment_selection(seg, [], "", pickFirst=True) == [a]  # a segmentation just chosen
+    assert mrml.segment_selection(seg, [b], "", pickFirst=True) == [b]
+    assert mrml.segment_selection(None, [a], a, pickFirst=True) == []
+    empty = scene.AddNewNodeByClass("vtkMRMLSegmentationNode")
+    assert mrml.segment_selection(empty, [], "", pickFirst=True) == []
+
+
+def test_preview_and_auto_thresholds_on_several_segments(scene):
+    ct, seg, ids, _ = _build(scene)
+    preview = mrml.ThresholdPreview(scene, margin_mm=2.0)
+    one = mrml._array_view(preview.update(ct, seg, ids["A"], 500.0, 300.0, 2500.0).GetImageData()).shape
+    node = preview.update(ct, seg, [ids["A"], ids["C"]], 500.0, 300.0, 2500.0)
+    both = mrml._array_view(node.GetImageData())
+    assert preview.cacheBuilds == 2 and both.shape[2] > one[2] + 20  # the crop spans A to C
+    # the crop holds both segments: every voxel of their union lies inside it
+    m = vtk.vtkMatrix4x4()
+    node.GetIJKToRASMatrix(m)
+    corner = np.array([m.GetElement(r, 3) for r in range(3)])
+    union = sitk.GetArrayFromImage(mrml.segments_to_sitk_labels(seg, [ids["A"], ids["C"]], ct).image) > 0
+    ras = _voxel_centres(ct, union.shape)[union]
+    inv = np.linalg.inv(np.array([[m.GetElement(r, c) for c in range(3)] for r in range(3)]))
+    ijk = (ras - corner) @ inv.T
+    assert ijk.min() > -0.5 and np.all(ijk.max(axis=0) < np.array(both.shape[::-1]) - 0.5)
+    assert preview.update(ct, seg, [ids["A"], ids["C"]], 520.0, 300.0, 2500.0) is node
+    assert preview.cacheBuilds == 2  # a drag step reuses the crop
+    preview.remove()
+    proposal = mrml.propose_thresholds(ct, seg, [ids["A"], ids["B"]])
+    single = mrml.propose_thresholds(ct, seg, ids["A"])
+    assert 40 < proposal["ht"] < proposal["h0"] < 1000 and abs(proposal["h0"] - single["h0"]) < 150

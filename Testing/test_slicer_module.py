@@ -191,6 +191,48 @@ def test_widget_cancels_a_running_run_when_the_scene_closes():
 
 
 # ---------------------------------------------------------------------------------------
+# issue 10 item 3: several bones from the panel
+# ---------------------------------------------------------------------------------------
+
+def test_widget_chooses_several_segments_and_runs_them_together():
+    """The selector's multi-selection signal drives the parameter node (segmentIds, and the
+    first as segmentId for older versions); Apply runs every chosen segment in one joint run
+    with the neighbours switch, one bone with the chosen output model, several with the
+    models of their previous run; the result shows a line per bone and pair, warnings in the
+    status; preview and Auto use all chosen segments."""
+    setup = ast.unparse(_method("setup"))
+    assert ("self.ui.segmentSelector.connect('segmentSelectionChanged(QStringList)', "
+            "self.onSegmentSelectorChanged)") in setup
+    # in multi-selection mode the selector never emits currentSegmentChanged
+    assert "currentSegmentChanged" not in MODULE_PY.read_text(encoding="utf-8")
+    sync = ast.unparse(_method("_syncSegmentSelectorFromParameterNode"))
+    assert "mrml.segment_selection(seg, list(p.segmentIds), p.segmentId" in sync
+    assert "self.ui.segmentSelector.setSelectedSegmentIDs(ids)" in sync
+    assert "self._updatingSegmentSelector = True" in sync and "finally:" in sync
+    store = ast.unparse(_method("_storeSegmentSelection"))
+    assert "p.segmentIds = ids" in store and "p.segmentId = first" in store
+    changed = ast.unparse(_method("onSegmentSelectorChanged"))
+    assert "self.ui.segmentSelector.selectedSegmentIDs()" in changed
+    check = ast.unparse(_method("_checkCanApply"))
+    assert "ids = self._chosenSegmentIds()" in check and "p.inputSegmentation and ids" in check
+    apply = _method("onApplyButton")
+    calls = _calls(apply)
+    assert "self.logic.processManyWithResult" in calls and "self.logic.processWithResult" not in calls
+    text = ast.unparse(apply)
+    assert "neighbours='auto' if p.neighbours else 'none'" in text
+    assert "mrml.previous_output_models(slicer.mrmlScene, p.inputSegmentation, ids) if several" in text
+    assert "else [p.outputModel]" in text and "p.outputModel = out.modelNodes[0]" in text
+    assert "lines = out.summaryLines()" in text and "self.ui.resultLabel.text = '\\n'.join(lines)" in text
+    assert "if out.warnings:" in text
+    for method in ("updatePreview", "onAutoThreshold"):
+        assert "self._chosenSegmentIds()" in ast.unparse(_method(method)), method
+    logic = ast.unparse(_method("processManyWithResult", "BoneWatertightLogic"))
+    assert "mrml.run_many_on_nodes(" in logic
+    process = ast.unparse(_method("process", "BoneWatertightLogic"))
+    assert "return self.processMany(" in process  # a list of segment IDs
+
+
+# ---------------------------------------------------------------------------------------
 # defect 4: which properties exist on which widget class
 # ---------------------------------------------------------------------------------------
 
@@ -225,6 +267,12 @@ QT_CTK_PROPERTIES = {
                                                 "contentsFrameShape", "contentsFrameShadow",
                                                 "contentsLineWidth", "contentsMidLineWidth",
                                                 "buttonTextAlignment", "indicatorAlignment"},
+    # Slicer @583e9b37: Libs/MRML/Widgets/qMRMLNodeComboBox.h
+    "qMRMLNodeComboBox": _QWIDGET | {"currentNodeID", "nodeTypes", "showHidden", "showChildNodeTypes",
+                                     "hideChildNodeTypes", "baseName", "noneEnabled", "addEnabled",
+                                     "removeEnabled", "editEnabled", "renameEnabled",
+                                     "interactionNodeSingletonTag", "selectNodeUponCreation",
+                                     "noneDisplay", "sizeAdjustPolicy"},
     "ctkSliderWidget": _QWIDGET | {"decimals", "singleStep", "pageStep", "minimum", "maximum", "value",
                                    "prefix", "suffix", "tickInterval", "tickPosition",
                                    "synchronizeSiblings", "spinBoxAlignment", "tracking",
@@ -439,7 +487,8 @@ def _module_test_class():
     assert len(body) == 2
     namespace = {
         "__name__": "BoneWatertight_selftest", "slicer": slicer, "logging": logging, "time": time,
-        "Optional": typing.Optional, "ScriptedLoadableModuleTest": _SlicerModuleTestBase,
+        "Optional": typing.Optional, "Sequence": typing.Sequence, "Union": typing.Union,
+        "ScriptedLoadableModuleTest": _SlicerModuleTestBase,
         "ScriptedLoadableModuleLogic": _ScriptedLogicBase,
         "vtkMRMLScalarVolumeNode": slicer.vtkMRMLScalarVolumeNode,
         "vtkMRMLSegmentationNode": slicer.vtkMRMLSegmentationNode,
@@ -472,7 +521,8 @@ def test_the_in_slicer_self_test_passes_on_real_mrml(slicer_scene):
     cls = _module_test_class()
     suite = unittest.TestLoader().loadTestsFromTestCase(cls)
     names = sorted(t._testMethodName for t in suite)
-    assert names == ["test_BoneWatertight_bad_input_leaves_scene", "test_BoneWatertight_capsule"]
+    assert names == ["test_BoneWatertight_bad_input_leaves_scene", "test_BoneWatertight_capsule",
+                     "test_BoneWatertight_two_bones"]
     result = unittest.TestResult()
     suite.run(result)
     assert result.wasSuccessful(), result.errors + result.failures
@@ -498,10 +548,11 @@ def test_the_in_slicer_self_test_skips_clearly_without_open3d(slicer_scene, monk
     result = unittest.TestResult()
     unittest.TestLoader().loadTestsFromTestCase(cls).run(result)
     assert result.wasSuccessful(), result.errors + result.failures
-    assert [t._testMethodName for t, _ in result.skipped] == ["test_BoneWatertight_capsule"]
-    assert result.skipped[0][1].startswith("SKIPPED: open3d is not available")
+    assert [t._testMethodName for t, _ in result.skipped] == ["test_BoneWatertight_capsule",
+                                                              "test_BoneWatertight_two_bones"]
+    assert all(reason.startswith("SKIPPED: open3d is not available") for _, reason in result.skipped)
     shown = []
     test = cls("runTest")
     test.delayDisplay = shown.append
     test.runTest()  # no exception
-    assert any(m.startswith("SKIPPED: open3d") for m in shown)
+    assert sum(m.startswith("SKIPPED: open3d") for m in shown) == 2
