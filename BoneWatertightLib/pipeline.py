@@ -443,8 +443,11 @@ def _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, progress, name, st
     times.poisson = time.perf_counter() - t0
     progress(1.0, f"{name}: M0 done")
     others = (own.owner[masks.box] > 0) & (own.owner[masks.box] != k)
-    others_distance = (ndimage.distance_transform_edt(~others).astype(np.float32) * d
-                       if others.any() else None)
+    others_distance = None
+    if others.any():
+        dist, f = _threshold.coarse_distance(others, d)
+        idx = [np.minimum(np.arange(n) // f, dist.shape[a] - 1) for a, n in enumerate(others.shape)]
+        others_distance = dist[np.ix_(*idx)].astype(np.float32)
     return {"masks": masks, "m0": m0, "raw_vertices": raw.n_vertices,
             "others_distance": others_distance,
             "visible": visible + origin, "b_ht": b_ht + origin, "n_candidates": len(candidates),

@@ -219,3 +219,17 @@ def test_no_ct_edge_fails():
     label = _ball(shape, (20, 20, 20), 10)
     p = _measure(label, label, edge=0.1)
     assert not p.ok and "edge" in " ".join(p.problems)
+
+
+# ---------------------------------------------------------------------------------- distances
+
+def test_distance_transform_is_the_same_with_and_without_edt(monkeypatch):
+    from BoneWatertightLib.mesh import distance
+
+    z, y, x = np.indices((30, 28, 26))
+    mask = (x - 12) ** 2 + (y - 14) ** 2 + ((z - 15) * 1.5) ** 2 < 81
+    fast = distance.signed_distance(mask, (0.5, 0.8, 0.8))
+    monkeypatch.setattr(distance, "_EDT", False)
+    slow = distance.signed_distance(mask, (0.5, 0.8, 0.8))
+    assert np.allclose(fast, slow, atol=1e-4)
+    assert distance.distance_inside(np.zeros((4, 4, 4), bool)).max() == 0

@@ -26,6 +26,7 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from ..errors import EmptySegmentError, ThresholdError
+from ..mesh.distance import distance_inside, distance_outside
 
 HT_FRACTION = 0.08
 H0_FRACTION = 0.19
@@ -60,8 +61,8 @@ def tissue_levels(ct: np.ndarray, inside: np.ndarray, labelled: np.ndarray,
         The segmentation's coarseness (mm).
     """
     sampling = tuple(float(v) for v in spacing_xyz[::-1])
-    d_in = ndimage.distance_transform_edt(np.pad(inside, 1), sampling=sampling)[1:-1, 1:-1, 1:-1]
-    d_out = ndimage.distance_transform_edt(~inside, sampling=sampling)
+    d_in = distance_inside(np.pad(inside, 1), sampling)[1:-1, 1:-1, 1:-1]
+    d_out = distance_outside(inside, sampling)
     band = (inside & (d_in <= max(coarseness, BAND_MIN_MM) + 1e-6)) | \
         (~labelled & (d_out <= coarseness + 1e-6) & (d_out > 0))
     shell = ~inside & ~labelled & (d_out <= SHELL_MM) & (d_out > 0.5 * coarseness)

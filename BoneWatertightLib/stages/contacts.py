@@ -29,7 +29,8 @@ from scipy.spatial import cKDTree
 from ..mesh.checks import find_self_intersections
 from ..mesh.operators import laplacian, safe_update, sample_field, solve_spd
 from ..mesh.surface import Surface, to_polydata
-from .threshold import bbox_slices
+from .threshold import bbox_slices, near
+from ..mesh.distance import signed_distance as signed_distance_map
 
 # Box margin (mm) of the signed distance fields.
 SDF_PAD_MM = 6.0
@@ -43,7 +44,7 @@ ENFORCE_ROUNDS = 12
 ENFORCE_RINGS = 6
 # Passes of the contact resolution (each from the current surfaces).
 CONTACT_PASSES = 3
-# Points farther than this from a field's box count as far from every other bone.
+# Beyond a field's box no other bone is near: phi reads -FAR there (always on the bone's side).
 FAR = 1e3
 
 
@@ -75,47 +76,42 @@ def voxelize(vertices: np.ndarray, faces: np.ndarray, shape: tuple, spacing: flo
 def signed_distance(mask: np.ndarray, box: tuple, spacing: float) -> np.ndarray:
     """Signed distance (mm, negative inside) of ``mask`` within ``box`` (float32)."""
     sub = mask[box]
-    return (ndimage.distance_transform_edt(~sub) * spacing
-            - ndimage.distance_transform_edt(sub) * spacing).astype(np.float32)
-
-
-def _fields(masks: dict, spacing: float) -> dict:
-    pad = int(np.ceil(SDF_PAD_MM / spacing)) + 2
-    out = {}
-    for key, mask in masks.items():
-        if mask is None or not mask.any():
-            continue
-        box = bbox_slices(mask, pad)
-        out[key] = (box, signed_distance(mask, box, spacing))
-    return out
-
-
-def _phi(fields: dict, key, spacing: float):
-    """(origin (x, y, z) grid mm, phi on key's box) or None when no other bone is near."""
-    box, own = fields[key]
-    nearest = np.full(own.shape, FAR, np.float32)
-    for other, (obox, osdf) in fields.items():
-        if other == key:
-            continue
-        common = tuple(slice(max(a.start, b.start), min(a.stop, b.stop)) for a, b in zip(box, obox))
-        if any(c.stop <= c.start for c in common):
-            continue
-        mine = tuple(slice(c.start - a.start, c.stop - a.start) for c, a in zip(common, box))
-        theirs = tuple(slice(c.start - b.start, c.stop - b.start) for c, b in zip(common, obox))
-        nearest[mine] = np.minimum(nearest[mine], osdf[theirs])
-    if (nearest >= FAR).all():
-        return None
-    origin = np.array([s.start for s in box][::-1], dtype=np.float64) * spacing
-    return origin, ((own - nearest) * 0.5).astype(np.float32)
+    return (signed_distance_map(sub) * spacing).astype(np.float32)
 
 
 def territories(surfaces: dict, fixed: dict, shape: tuple, spacing: float) -> dict:
     """phi per reconstructed bone from ``surfaces`` ({key: (vertices, faces)} grid mm) and the
-    owned voxels of the bones that are not reconstructed (``fixed``: {key: bool mask})."""
+    owned voxels of the bones that are not reconstructed (``fixed``: {key: bool mask}).
+
+    phi is computed only where another bone comes within SDF_PAD_MM (a box around the joint),
+    so a long bone pays for its joints, not for its length. None: no other bone is near."""
     masks = {k: voxelize(v, f, shape, spacing) for k, (v, f) in surfaces.items()}
-    masks.update(fixed)
-    fields = _fields(masks, spacing)
-    return {k: (_phi(fields, k, spacing) if k in fields else None) for k in surfaces}
+    masks.update({k: m for k, m in fixed.items() if m is not None and m.any()})
+    pad = int(np.ceil(SDF_PAD_MM / spacing)) + 2
+    out = {}
+    for k in surfaces:
+        mine = masks[k]
+        if not mine.any():
+            out[k] = None
+            continue
+        zone = near(mine, spacing, SDF_PAD_MM)
+        others = [m for j, m in masks.items() if j != k]
+        close = [m & zone for m in others]
+        if not any(c.any() for c in close):
+            out[k] = None
+            continue
+        union = np.zeros(shape, bool)
+        for c in close:
+            union |= c
+        box = bbox_slices(union, pad)
+        own = signed_distance(mine, box, spacing)
+        nearest = np.full(own.shape, FAR, np.float32)
+        for m, c in zip(others, close):
+            if c.any():
+                nearest = np.minimum(nearest, signed_distance(m, box, spacing))
+        origin = np.array([s_.start for s_ in box][::-1], dtype=np.float64) * spacing
+        out[k] = (origin, ((own - nearest) * 0.5).astype(np.float32))
+    return out
 
 
 def allowed_test(phi_entry, spacing: float, min_gap: float):
@@ -125,7 +121,7 @@ def allowed_test(phi_entry, spacing: float, min_gap: float):
         return None
     origin, phi = phi_entry
     limit = -0.5 * min_gap - TARGET_MARGIN_VOXELS * spacing
-    return lambda p: sample_field(phi, np.asarray(p) - origin, spacing, cval=FAR) <= limit
+    return lambda p: sample_field(phi, np.asarray(p) - origin, spacing, cval=-FAR) <= limit
 
 
 def _ring_patch(adjacency, seeds: np.ndarray, rings: int) -> np.ndarray:
@@ -151,7 +147,7 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
     v = np.asarray(vertices, dtype=np.float64) - origin
     start = v.copy()
     target = -0.5 * gap - TARGET_MARGIN_VOXELS * spacing
-    value = sample_field(phi, v, spacing, cval=FAR)
+    value = sample_field(phi, v, spacing, cval=-FAR)
     if not (value > target).any():
         return vertices, 0, 0
     grads = [ndimage.sobel(phi, axis=a) / (8.0 * spacing) for a in (2, 1, 0)]
@@ -161,7 +157,7 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
     moved = np.zeros(len(v), bool)
     stiffness = ENFORCE_SMOOTHNESS
     for r in range(rounds):
-        value = sample_field(phi, v, spacing, cval=FAR)
+        value = sample_field(phi, v, spacing, cval=-FAR)
         bad = value > target
         if not bad.any():
             break
@@ -186,7 +182,7 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
         v = new
     checked, _, _ = safe_update(start, v, faces, intersections=True)
     v = checked
-    beyond = int((sample_field(phi, v, spacing, cval=FAR) > -0.5 * gap).sum())
+    beyond = int((sample_field(phi, v, spacing, cval=-FAR) > -0.5 * gap).sum())
     return v + origin, beyond, int(moved.sum())
 
 

@@ -33,7 +33,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from .threshold import SIX, bbox_slices, segment_region
+from .threshold import SIX, bbox_slices, coarse_distance, segment_region
+from ..mesh.distance import distance_inside, distance_outside
 
 # A core is deeper than max(CORE_MIN_MM, coarseness) inside its label, but at most this
 # fraction of the label's deepest point (thin bones keep a core).
@@ -235,7 +236,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             continue
         sl = bbox_slices(m, int(np.ceil(max(r_contact, band_mm) / spacing)) + 2)
         sub = m[sl]
-        depth = ndimage.distance_transform_edt(np.pad(sub, 1))[1:-1, 1:-1, 1:-1] * spacing
+        depth = distance_inside(np.pad(sub, 1))[1:-1, 1:-1, 1:-1] * spacing
         r = min(r_core, CORE_MAX_DEPTH_FRACTION * float(depth.max()))
         core = depth > r if (depth > r).any() else depth >= depth.max()
         cores[sl][core] = i
@@ -248,7 +249,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         union[sl] |= reg
         others = labelled[sl] & ~sub
         if others.any():
-            d_other = ndimage.distance_transform_edt(~others) * spacing
+            d_other = distance_outside(others) * spacing
             contact[sl] |= sub & (d_other <= r_contact)
         if progress:
             progress(0.4 * (step + 1) / len(present), "segment regions")
@@ -292,6 +293,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     # Unlabelled pieces meeting a bone without a valley: the bone's own, missed by the segment.
     area = spacing ** 2
     merged = []
+    reach_of = {}
     for piece in range(other, other + n_pieces):
         best = None
         for (a, b), (tot, vis) in faces.items():
@@ -306,10 +308,12 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             continue
         # Only what the segment plausibly missed: the piece lies within reach of the label
         # (a whole neighbouring bone without a visible joint space does not).
-        basin = ws == piece
-        box = bbox_slices(basin | (labels == a), 2)
-        reach = ndimage.distance_transform_edt(labels[box] != a) * spacing
-        if reach[basin[box]].max() <= band_mm + MERGE_REACH_COARSENESS * coarseness + MERGE_REACH_MM:
+        if a not in reach_of:
+            reach_of[a] = coarse_distance(labels == a, spacing)
+        dist, f = reach_of[a]
+        zi, yi, xi = np.nonzero(ws == piece)
+        far = dist[zi // f, yi // f, xi // f].max()
+        if far <= band_mm + MERGE_REACH_COARSENESS * coarseness + MERGE_REACH_MM:
             merged.append((piece, a, vis / tot, tot * area))
     grow: dict = {}
     for piece, a, _, _ in merged:

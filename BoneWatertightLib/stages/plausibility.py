@@ -32,12 +32,15 @@ from scipy import ndimage
 
 from ..mesh.operators import sample_field
 from .threshold import bbox_slices
+from ..mesh.distance import distance_inside, distance_outside
 
 # Bounds: a run outside them fails (or warns).
 MAX_MISSING_FRACTION = 0.15
 MAX_EXTRA_FRACTION = 0.25
 MAX_CORE_OVERLAP = 0.02
 MIN_EDGE_SUPPORT = 0.5
+# The comparison runs on blocks of about this size (mm).
+COARSE_MM = 1.0
 # Excursion allowed beyond the band, in units of the coarseness, plus a constant.
 EXCURSION_COARSENESS = 2.0
 EXCURSION_MM = 2.0
@@ -92,11 +95,22 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         Fraction of vertices with a CT edge (edge refinement); NaN when it did not run.
     """
     label = label & in_image
+    # Bounds of a few mm need no sub-millimetre grid: measure on blocks of about 1 mm.
+    f = max(1, int(round(COARSE_MM / spacing)))
+    if f > 1:
+        label = _block_majority(label, f)
+        inside = _block_majority(inside, f)
+        neighbours = _block_majority(neighbours, f)
+        neighbour_cores = _block_majority(neighbour_cores, f)
+        in_image = _block_majority(in_image, f)
+        spacing = spacing * f
+        vertices = vertices - 0.5 * (spacing - spacing / f)  # block centres are offset
+        label &= in_image
     voxel = spacing ** 3
     seg_n = int(label.sum())
     in_n = int(inside.sum())
-    d_in = ndimage.distance_transform_edt(np.pad(label, 1))[1:-1, 1:-1, 1:-1] * spacing
-    d_out = ndimage.distance_transform_edt(~label) * spacing
+    d_in = distance_inside(np.pad(label, 1))[1:-1, 1:-1, 1:-1] * spacing
+    d_out = distance_outside(label) * spacing
     # Pieces of the segment that the surface does not touch at all (islands of a rough segment
     # in the soft tissue) are reported, not counted as missing bone.
     pieces, n_pieces = ndimage.label(label, structure=np.ones((3, 3, 3), bool))
@@ -123,6 +137,14 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         edge_support=float(edge_support),
         untouched_segment_ml=float(islands.sum() * voxel / 1000.0))
     return p
+
+
+def _block_majority(mask: np.ndarray, f: int) -> np.ndarray:
+    """``mask`` on blocks of f^3 voxels: a block is set when at least half of it is."""
+    pad = [(0, (-s) % f) for s in mask.shape]
+    m = np.pad(mask, pad).astype(np.uint16)
+    z, y, x = (s // f for s in m.shape)
+    return m.reshape(z, f, y, f, x, f).sum(axis=(1, 3, 5)) * 2 >= f ** 3
 
 
 def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str) -> Plausibility:

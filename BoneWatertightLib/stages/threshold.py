@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
+from ..mesh.distance import distance_inside, distance_outside
 
 SIX = ndimage.generate_binary_structure(3, 1)
 
@@ -81,12 +82,12 @@ def segment_region(segment: np.ndarray, spacing: float, close_mm: float = REGION
     coarse = _block_any(segment, f)
     pad = int(np.ceil((close_mm + dilate_mm) / cs)) + 2
     coarse = np.pad(coarse, pad)
-    d_out = ndimage.distance_transform_edt(~coarse) * cs
+    d_out = distance_outside(coarse) * cs
     dilated = d_out <= close_mm
-    d_in = ndimage.distance_transform_edt(dilated) * cs
+    d_in = distance_inside(dilated) * cs
     closed = (d_in > close_mm) | coarse
     closed = ndimage.binary_fill_holes(closed)
-    d_closed = ndimage.distance_transform_edt(~closed) * cs
+    d_closed = distance_outside(closed) * cs
     region = d_closed <= dilate_mm
     region = region[pad:-pad, pad:-pad, pad:-pad]
     idx = [np.minimum(np.arange(s) // f, region.shape[a] - 1) for a, s in enumerate(segment.shape)]
@@ -171,6 +172,26 @@ def erosions_to_separate(ct: np.ndarray, owner: np.ndarray, k: int, spacing: flo
         if not np.intersect1d(a, b).size:
             return e
     return None
+
+
+def near(mask: np.ndarray, spacing: float, radius_mm: float, step_mm: float = 2.0) -> np.ndarray:
+    """Voxels within about ``radius_mm`` of ``mask`` (never fewer: computed on a coarse grid
+    of ``step_mm`` blocks, so it errs on the generous side by up to a block)."""
+    f = max(1, int(round(step_mm / spacing)))
+    coarse = _block_any(mask, f)
+    steps = int(np.ceil(radius_mm / (f * spacing))) + 1
+    grown = ndimage.binary_dilation(coarse, structure=np.ones((3, 3, 3), bool), iterations=steps)
+    idx = [np.minimum(np.arange(s) // f, grown.shape[a] - 1) for a, s in enumerate(mask.shape)]
+    return grown[np.ix_(*idx)]
+
+
+def coarse_distance(mask: np.ndarray, spacing: float, step_mm: float = 1.0) -> tuple:
+    """(distance map in mm to ``mask`` on a grid of about ``step_mm`` blocks, block factor f):
+    voxel (z, y, x) of the full grid reads it at (z // f, y // f, x // f). Accurate to a block;
+    for bounds of a few millimetres (not for sub-voxel work)."""
+    f = max(1, int(round(step_mm / spacing)))
+    coarse = _block_any(mask, f)
+    return distance_outside(coarse) * (f * spacing), f
 
 
 def bbox_slices(mask: np.ndarray, pad: int) -> tuple:
