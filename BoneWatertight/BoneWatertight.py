@@ -932,8 +932,9 @@ class BoneWatertightTest(ScriptedLoadableModuleTest):
         self.delayDisplay("Building two balls 1.5 mm apart")
         volume, segmentation, segmentIds = self._makeTwoBones()
         logic = BoneWatertightLogic()
-        models = logic.processMany(volume, segmentation, segmentIds, spacing=0.6, h0=500.0, ht=300.0,
-                                   addAsSegments=True)
+        # process() with a list of segment IDs = processMany(): one model per bone
+        models = logic.process(volume, segmentation, segmentIds, addAsSegment=True, spacing=0.6,
+                               h0=500.0, ht=300.0)
         self.assertEqual(len(models), 2)
         for model, centre, other in zip(models, self.balls, self.balls[::-1]):
             points = slicer.util.arrayFromModelPoints(model)

@@ -404,7 +404,7 @@ NEIGHBOUR_REACH_SLACK_MM = 10.0
 class SegmentLabels:
     """Segments of one segmentation as one label image on the CT grid.
 
-    ``image``: uint16 (uint32 beyond 65535 segments) SimpleITK image on the CT grid (LPS), 0 =
+    ``image``: uint8 (uint16, uint32 for more segments) SimpleITK image on the CT grid (LPS), 0 =
     background; ``values``: segment ID -> its label value (1, 2, ... in the order asked for);
     ``names``: label value -> segment name (made unique); ``skipped``: segment ID -> why it is not
     in the image (empty, outside the CT, beyond the neighbours' reach).
@@ -500,7 +500,8 @@ def segments_to_sitk_labels(segmentationNode, segmentIds, referenceVolumeNode, *
     kept = [s for s in segmentIds if s not in skipped]
     values = {s: n for n, s in enumerate(kept, 1)}
     dims = [ref_extent[2 * a + 1] - ref_extent[2 * a] + 1 for a in range(3)]
-    dtype = np.uint16 if len(kept) < 2 ** 16 else np.uint32
+    # the smallest type: a full-grid image of a 512 x 512 x 500 CT is 131 MB in uint8
+    dtype = np.uint8 if len(kept) < 2 ** 8 else np.uint16 if len(kept) < 2 ** 16 else np.uint32
     out = np.zeros((dims[2], dims[1], dims[0]), dtype=dtype)
     overlaps = {}
     for n, (labelmap, layer_values) in enumerate(layers):
@@ -715,19 +716,25 @@ class PreparedSegments:
     resolvedVoxels: int = 0
 
 
-def _write_back_geometry(segmentationNode, volumeNode) -> str:
-    """Serialized geometry (segmentation frame) of the written-back label maps: the
-    segmentation's reference geometry, else the CT grid."""
-    segmentation = segmentationNode.GetSegmentation()
-    geometry = segmentation.GetConversionParameter(
+def _check_write_back(segmentationNode):
+    """(reference geometry string or "", segmentation -> world matrix); InputError when the
+    surfaces could not be written back (checked before a run: it would fail at its end)."""
+    geometry = segmentationNode.GetSegmentation().GetConversionParameter(
         slicer.vtkSegmentationConverter.GetReferenceImageGeometryParameterName())
-    if geometry:
-        return geometry
     seg_to_world = _to_world_matrix(segmentationNode)
-    if seg_to_world is None:
+    if not geometry and seg_to_world is None:
         raise InputError(f"Segmentation '{segmentationNode.GetName()}' is under a non-linear transform "
                          "and has no reference geometry: harden its transform to write the surfaces "
                          "back as segments (or switch that option off).")
+    return geometry, seg_to_world
+
+
+def _write_back_geometry(segmentationNode, volumeNode) -> str:
+    """Serialized geometry (segmentation frame) of the written-back label maps: the
+    segmentation's reference geometry, else the CT grid."""
+    geometry, seg_to_world = _check_write_back(segmentationNode)
+    if geometry:
+        return geometry
     reference = _reference_geometry(volumeNode)
     local = slicer.vtkOrientedImageData()
     local.SetExtent(reference.GetExtent())
@@ -1166,7 +1173,9 @@ def summarize_joint(joint) -> list:
 class JointNodesResult:
     """What :func:`run_many_on_nodes` made: one model node per bone (``modelNodes[i]`` for
     ``segmentIds[i]``), the segments written back (``addedSegmentIds``, same order, empty unless
-    asked for), the segments that competed as neighbours, and the pipeline's JointResult."""
+    asked for), the other segments handed to the pipeline as neighbours
+    (``neighbourSegmentIds``; ``skippedSegments``: segment ID -> why one was not: empty, outside
+    the CT, out of reach), the intermediate-result nodes, and the pipeline's JointResult."""
 
     modelNodes: list
     segmentIds: list
@@ -1273,6 +1282,8 @@ def run_many_on_nodes(volumeNode, segmentationNode, segmentIds, outputModelNodes
         raise InputError("The same output model is given for two segments; give each bone its own.")
     names = _per_segment(modelNames, segmentIds, "model names")
     neighbourIds = _neighbour_ids(segmentationNode, segmentIds, neighbours)
+    if addAsSegments:
+        _check_write_back(segmentationNode)
 
     with RunGuard(scene, (volumeNode, segmentationNode, *given)) as guard:
         report = RunProgress(progress, guard)

@@ -405,7 +405,7 @@ def test_label_export_values_names_and_reach(scene):
 
 
 @pytest.mark.parametrize("case", ["duplicate", "neighbour_is_target", "unknown_neighbour",
-                                  "outputs_count", "same_output", "no_segments"])
+                                  "outputs_count", "same_output", "no_segments", "write_back_warped"])
 def test_bad_joint_requests_are_refused_before_any_work(scene, case):
     ct, seg, ids, _ = _build(scene)
     previous = _previous_model(scene)
@@ -421,8 +421,22 @@ def test_bad_joint_requests_are_refused_before_any_work(scene, case):
         kwargs["outputModelNodes"], match = [previous], "1 output models for 2 segments"
     elif case == "same_output":
         kwargs["outputModelNodes"], match = [previous, previous], "same output model"
-    else:
+    elif case == "no_segments":
         kwargs["segmentIds"], match = [], "No segment selected"
+    else:  # the surfaces could not be written back: refused before the run, not after it
+        warp = scene.AddNewNodeByClass("vtkMRMLTransformNode", "warp")
+        source, target = vtk.vtkPoints(), vtk.vtkPoints()
+        for p in [(-80, -80, -40), (80, -80, -40), (-80, 80, -40), (-80, -80, 120), (80, 80, 120), (0, 0, 40)]:
+            source.InsertNextPoint(p)
+            target.InsertNextPoint(p[0] + 0.5 * (p[2] > 50), p[1], p[2])
+        tps = vtk.vtkThinPlateSplineTransform()
+        tps.SetSourceLandmarks(source)
+        tps.SetTargetLandmarks(target)
+        tps.SetBasisToR()
+        warp.SetAndObserveTransformToParent(tps)
+        seg.SetAndObserveTransformNodeID(warp.GetID())
+        before = _state(scene, seg, [previous])
+        kwargs["addAsSegments"], match = True, "non-linear transform"
     calls = []
     with pytest.raises(InputError, match=match):
         mrml.run_many_on_nodes(ct, seg, params=PARAMS, progress=lambda f, m: calls.append(m) or True, **kwargs)
