@@ -113,6 +113,45 @@ def test_batch_writes_stl_and_vtp_in_lps_and_ras_that_slicer_places_right(case, 
     assert a.shape == b.shape and np.allclose(np.sort(a, axis=0), np.sort(b, axis=0), atol=1e-3)
 
 
+def test_batch_reconstructs_several_labels_together_as_the_command_does(tmp_path, capsys):
+    """--all-labels / several --label: one joint run (run service), every other label a
+    neighbour by default, a RESULT line per bone and a PAIR line per pair; the surfaces, read
+    back as Slicer reads them, do not enter each other."""
+    n, r = (48, 28, 28), 7.0
+    z, y, x = np.mgrid[:n[2], :n[1], :n[0]].astype(float)
+    centres = [np.array([15.75, 13.5, 13.5]), np.array([31.25, 13.5, 13.5])]  # 1.5 mm apart
+    dist = [np.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2) for c in centres]
+    edge = sum(0.5 * (1.0 - np.tanh((d - r) / 0.5)) for d in dist)
+    noise = np.random.default_rng(1).normal(0.0, 8.0, edge.shape)
+    ct = sitk.GetImageFromArray(np.round(40.0 + 960.0 * np.clip(edge, 0, 1) + noise).astype(np.int16))
+    ct.SetOrigin([5.0, -7.0, 20.0])
+    labels = np.zeros(edge.shape, np.uint8)
+    labels[dist[0] < r - 1.5] = 1
+    labels[dist[1] < r - 1.5] = 2
+    seg = sitk.GetImageFromArray(labels)
+    seg.CopyInformation(ct)
+    sitk.WriteImage(ct, str(tmp_path / "ct.nrrd"))
+    sitk.WriteImage(seg, str(tmp_path / "labels.nrrd"))
+    out = tmp_path / "bone_{label}.vtp"
+    argv = ["--ct", str(tmp_path / "ct.nrrd"), "--seg", str(tmp_path / "labels.nrrd"), "--all-labels",
+            "--out", str(out), "--report", str(tmp_path / "report.json")] + FAST
+    assert _batch().main(argv) == errors.EXIT_OK, capsys.readouterr().err
+    text = capsys.readouterr().out
+    assert text.count("RESULT ") == 2 and text.count("PAIR ") == 1
+    files = sorted(tmp_path.glob("bone_*.vtp"))
+    assert [f.name for f in files] == ["bone_1.vtp", "bone_2.vtp"]
+    centres_ras = [np.array(ct.TransformContinuousIndexToPhysicalPoint(c.tolist())) * [-1, -1, 1]
+                   for c in centres]
+    for f, centre, other in zip(files, centres_ras, centres_ras[::-1]):
+        pts = ns.vtk_to_numpy(mrml.read_model_file(f).GetPolyData().GetPoints().GetData())
+        assert np.abs(np.linalg.norm(pts - centre, axis=1) - r).max() < 1.0
+        assert not (np.linalg.norm(pts - other, axis=1) < r).any()  # not inside the other ball
+    # the command's own argument checks: several labels need {label} in --out
+    assert _batch().main(argv[:4] + ["--all-labels", "--out", str(tmp_path / "one.stl")] + FAST) \
+        == errors.EXIT_INPUT
+    assert "{label}" in capsys.readouterr().err
+
+
 def _space_tag(path):
     """The coordinate system the file states: STL header, VTP field data (as Slicer writes them)."""
     if str(path).endswith(".stl"):

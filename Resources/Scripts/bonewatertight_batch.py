@@ -4,7 +4,13 @@ Usage (the same flags, parameter options and exit codes as the ``bonewatertight`
   Slicer --no-splash --no-main-window --python-script bonewatertight_batch.py -- \
       --ct CT.nrrd --seg Seg.seg.nrrd --label NAME_OR_ID --out bone.stl \
       [--preset femur|hip|vertebra] [--h0 300 --spacing 0.5 ...] [--report report.json] [--ras]
+  Slicer --no-main-window --python-script bonewatertight_batch.py -- \
+      --ct CT.nrrd --seg Seg.seg.nrrd --label femur_left --label hip_left --out '{label}.stl' \
+      [--all-labels] [--neighbours auto|none|LABEL,...]
   Slicer --no-main-window --python-script bonewatertight_batch.py -- --self-test
+
+Several --label (or --all-labels) are reconstructed together, as the command does: every
+other label of --seg is a neighbour by default (--neighbours), no surface enters another.
 
 The extension installs this script as <Slicer extension folder>/lib/Slicer-X.Y/qt-scripted-modules/
 Resources/Scripts/bonewatertight_batch.py (in a source checkout: Resources/Scripts/). It also
@@ -163,12 +169,60 @@ def _selfTest(args, params, progress, transaction):
     return report, check
 
 
+def _runFiles(args, params, progress, transaction):
+    """The bonewatertight command's run of --ct / --seg / --label(s) (or --all-labels): the
+    labels reconstructed together through the run service (run_joint), outputs staged in
+    ``transaction``. Returns the run service's JointRun."""
+    import time
+
+    from BoneWatertightLib.app import cli, run
+    from BoneWatertightLib.errors import InputError
+    from BoneWatertightLib.io import images, segmentations
+
+    t0 = time.perf_counter()
+    ct = images.read_ct(args.ct, args.ct_series)
+    labels, names = segmentations.read_label_image(args.seg)
+    if args.all_labels:
+        present = getattr(names, "present", None)
+        targets = [v for v in sorted(names) if present is None or v in present]
+        if not targets:
+            raise InputError(f"{args.seg} holds no painted label.")
+    else:
+        targets = [segmentations.resolve_label(names, label) for label in args.label]
+    for i, value in enumerate(targets):
+        if value in targets[:i]:
+            raise InputError(f"--label {args.label[targets.index(value)]} and --label {args.label[i]} "
+                             f"are the same segment '{names.get(value, value)}'; give each bone once.")
+    neighbours = cli.parse_neighbours(args.neighbours, names)
+    readSeconds = time.perf_counter() - t0
+    labelNames = {v: str(names.get(v, v)) for v in targets}
+    outputs = {v: run.fill_template(args.out, labelNames[v]) for v in targets}
+    if len(set(outputs.values())) != len(outputs):
+        raise InputError("Two labels give the same output file name; use distinct labels.")
+    pictures = None
+    if args.picture:
+        pictures = {}
+        for v in targets:
+            picture = run.fill_template(args.picture, labelNames[v])
+            if len(targets) > 1 and "{label}" not in args.picture:
+                picture = os.path.splitext(picture)[0] + f"_{run.safe_name(labelNames[v])}.png"
+            pictures[v] = picture
+    inputs = {"ct": os.path.abspath(args.ct), "seg": os.path.abspath(args.seg),
+              "ct_size": list(ct.GetSize()), "ct_spacing": list(ct.GetSpacing()),
+              "preset": args.preset}
+    return run.run_joint(ct, labels, targets, dict(names), outputs, params,
+                         coordinate_system="RAS" if args.ras else "LPS", pictures=pictures,
+                         intermediates_dir=args.save_intermediates, neighbours=neighbours,
+                         progress=progress, inputs=inputs, read_seconds=readSeconds,
+                         report_path=args.report, transaction=transaction)
+
+
 def main(argv):
     parser = build_parser()
     from BoneWatertightLib import errors
     from BoneWatertightLib.app import options, run
     from BoneWatertightLib.io.files import OutputTransaction
-    from BoneWatertightLib.report import case_summary_line
+    from BoneWatertightLib.report import case_summary_line, pair_summary_line
 
     try:
         args = parser.parse_args(argv)
@@ -193,30 +247,37 @@ def main(argv):
                 print(dependency_skip_message(missing), flush=True)
                 return errors.EXIT_DEPENDENCY
         else:
-            missing = [f for f, v in (("--ct", args.ct), ("--seg", args.seg), ("--label", args.label),
-                                      ("--out", args.out)) if not v]
-            if missing:
-                parser.error("missing " + ", ".join(missing) + " (or --self-test)")
-            if len(args.label) > 1 and "{label}" not in args.out:
-                parser.error("several labels need {label} in --out")
+            from BoneWatertightLib.app import cli
+
+            cli.check_single_args(args, parser)  # the command's own checks and messages
         # as the bonewatertight command: every output of the run (surfaces, pictures, report)
         # is committed together or not at all; SIGINT/SIGTERM/SIGHUP cancel (exit 130)
+        pairs, failures = [], []
         with run.cancel_on_signals(), OutputTransaction() as tx:
             if args.self_test:
                 report, check = _selfTest(args, params, progress, tx)
                 reports = [report]
+                if args.report:
+                    run.write_reports(args.report, reports, tx)
             else:
-                reports = [run.run_files(args.ct, args.seg, label, args.out, params, ct_series=args.ct_series,
-                                         coordinate_system="RAS" if args.ras else "LPS", picture=args.picture,
-                                         intermediates_dir=args.save_intermediates, progress=progress,
-                                         inputs={"preset": args.preset}, transaction=tx)
-                           for label in args.label]
-            if args.report:
-                run.write_reports(args.report, reports, tx)
+                joint = _runFiles(args, params, progress, tx)
+                reports, pairs, failures = joint.reports, joint.pairs, joint.failures
+        codes = [errors.EXIT_OK]
+        for name, exc in failures:  # a bone that failed did not stop the others
+            print(f"error: {name + ': ' if len(reports) + len(failures) > 1 else ''}{errors.one_line(exc)}",
+                  file=sys.stderr)
+            code = errors.exit_code_for(exc)
+            if code == errors.EXIT_INTERNAL:
+                raise exc  # a bug: the traceback below
+            codes.append(code)
         for report in reports:
             print("RESULT " + case_summary_line(report), flush=True)
-        ok = check() if check is not None else True
-        return errors.EXIT_OK if ok else errors.EXIT_FAILED
+        for pair in pairs:
+            print("PAIR " + pair_summary_line(pair), flush=True)
+        if check is not None and not check():
+            codes.append(errors.EXIT_FAILED)
+        # as the command: an input error outranks a failed reconstruction
+        return max(codes, key=lambda c: (c != 0, c == errors.EXIT_INPUT, c))
     except SystemExit as exc:  # --help
         return exc.code if isinstance(exc.code, int) else errors.EXIT_OK
     except KeyboardInterrupt:
