@@ -1,0 +1,271 @@
+"""One benchmark method in its own fresh process (used by Testing/benchmark.py).
+
+    python Testing/bench_worker.py TASK.pkl RESULT.pkl
+
+The parent (:func:`run_isolated`) writes a task (plain types only), starts this script with
+the same interpreter, waits (with a timeout) and reads the result. This module imports only
+the standard library at the top, so the child's own start-up is what the task needs and
+nothing of the parent (no re-import of the benchmark's __main__).
+
+Measured in the child, for every kind of task:
+
+- ``seconds``: wall time around the call only (imports and reading the inputs excluded),
+  except for ``kind == "cli"``, where the clock starts before the command line's module is
+  imported (the whole CLI run: imports, reading, reconstruction, writing);
+- ``peak_rss_mb``: the process's peak resident set (VmHWM of /proc/self/status; not
+  ru_maxrss, which on Linux carries the parent's RSS across exec);
+- ``base_rss_mb``: the RSS just before the call (interpreter, libraries, inputs).
+
+Task kinds (keys besides ``kind``):
+
+- ``reconstruct``: ``ct``, ``mask``, ``params`` -> pipeline.reconstruct (one bone).
+- ``many``: ``ct``, ``labels``, ``targets``, ``neighbours``, ``names``, ``params`` ->
+  pipeline.reconstruct_many(..., keep_going=True).
+- ``baseline``: ``ct``, ``mask``, ``method`` (a key of baselines.METHODS), ``params``,
+  optional ``pad_air`` (voxels of air added around the CT, zeros around the mask: lets the
+  baselines, which refuse segments touching the CT border, close a cut bone at the image
+  boundary as a padded segment does in 3D Slicer).
+- ``segment_surface``: ``labels``, ``value`` -> baselines.segment_closed_surface.
+- ``slicer_default``: ``ct``, ``mask``, ``ht``, ``theta_max`` -> 3D Slicer's default closed
+  surface on the CT's own grid: threshold [ht, theta_max], keep the islands touching the
+  segment, discrete flying edges + windowed sinc (baselines.segment_closed_surface).
+- ``cli``: ``argv``, ``log`` -> BoneWatertightLib.app.cli.main(argv), stdout/stderr to ``log``.
+
+``cprofile: true`` runs the call under cProfile and returns the top functions.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import sys
+import time
+import traceback
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+
+def _status_mb(key: str) -> float:
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(key + ":"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+def _surface_out(surface, name="", label=0):
+    import numpy as np
+
+    cell = getattr(surface, "cell_data", None) or {}
+    cap = cell.get("Cap")
+    return {"name": name, "label": label, "ok": True, "error": None,
+            "vertices": np.asarray(surface.vertices, np.float64),
+            "faces": np.asarray(surface.faces, np.int64),
+            "cap": None if cap is None else np.asarray(cap, np.uint8)}
+
+
+def _pad_air(ct, mask, pad):
+    import SimpleITK as sitk
+
+    ct = sitk.ConstantPad(ct, [pad] * 3, [pad] * 3, -1000.0)
+    mask = sitk.ConstantPad(sitk.Cast(mask != 0, sitk.sitkUInt8), [pad] * 3, [pad] * 3, 0)
+    return ct, mask
+
+
+def _slicer_default(ct, mask, ht, theta_max):
+    """Threshold segment on the CT's grid, islands touching the segment, closed surface."""
+    import numpy as np
+    import SimpleITK as sitk
+    from scipy import ndimage
+
+    import baselines
+
+    seg = sitk.Resample(mask, ct, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
+    a = sitk.GetArrayViewFromImage(ct)
+    m = (a >= ht) & (a <= theta_max)
+    lab, n = ndimage.label(m)
+    hit = np.unique(lab[(sitk.GetArrayViewFromImage(seg) > 0) & m])
+    keep = np.isin(lab, hit[hit > 0])
+    img = sitk.GetImageFromArray(keep.astype(np.uint8))
+    img.CopyInformation(ct)
+    return baselines.segment_closed_surface(img, 1)
+
+
+def _call(task):
+    """(function of no arguments doing the measured work, how to turn its value into bones)."""
+    kind = task["kind"]
+    if kind == "cli":
+        def run_cli():
+            from BoneWatertightLib.app import cli
+            log = task.get("log")
+            if log:
+                with open(log, "w") as fh:
+                    old = os.dup(1), os.dup(2)
+                    sys.stdout.flush()
+                    sys.stderr.flush()
+                    os.dup2(fh.fileno(), 1)
+                    os.dup2(fh.fileno(), 2)
+                    try:
+                        return cli.main(list(task["argv"]))
+                    finally:
+                        sys.stdout.flush()
+                        sys.stderr.flush()
+                        os.dup2(old[0], 1)
+                        os.dup2(old[1], 2)
+            return cli.main(list(task["argv"]))
+        return run_cli, lambda rc: {"exit_code": rc, "bones": []}
+
+    import SimpleITK as sitk
+
+    from BoneWatertightLib.params import Parameters
+
+    params = Parameters(**task.get("params", {}))
+    if kind in ("reconstruct", "many"):
+        from BoneWatertightLib import pipeline
+        from BoneWatertightLib.report import to_plain
+        from BoneWatertightLib.stages.poisson import import_open3d
+        import_open3d()  # before the clock (the pipeline's own import_open3d is then ~0 s)
+        ct = sitk.ReadImage(task["ct"])
+        if kind == "reconstruct":
+            mask = sitk.ReadImage(task["mask"])
+
+            def conv(res):
+                b = _surface_out(res.surface, res.name, res.label)
+                b["report"] = to_plain(res.report)
+                return {"bones": [b], "pairs": []}
+            return (lambda: pipeline.reconstruct(ct, mask, params)), conv
+        labels = sitk.ReadImage(task["labels"])
+        names = {int(k): v for k, v in (task.get("names") or {}).items()}
+
+        def conv(res):
+            bones = []
+            for r in res.bones:
+                if r.ok:
+                    b = _surface_out(r.surface, r.name, r.label)
+                    b["report"] = to_plain(r.report)
+                else:
+                    b = {"name": r.name, "label": r.label, "ok": False,
+                         "error": f"{type(r.error).__name__}: {r.error}"}
+                bones.append(b)
+            return {"bones": bones, "pairs": [to_plain(p) for p in res.pairs],
+                    "joint": {"timings": to_plain(res.report.timings),
+                              "thresholds": to_plain(res.report.thresholds),
+                              "neighbours": to_plain(res.report.neighbours),
+                              "input": to_plain(res.report.input)}}
+        neighbours = task.get("neighbours", "auto")
+        return (lambda: pipeline.reconstruct_many(ct, labels, list(task["targets"]), params,
+                                                  neighbours=neighbours, names=names,
+                                                  keep_going=True)), conv
+
+    import baselines
+    import vtk  # noqa: F401
+
+    if kind == "segment_surface":
+        labels = sitk.ReadImage(task["labels"])
+        return (lambda: baselines.segment_closed_surface(labels, int(task["value"]))), \
+            lambda s: {"bones": [_surface_out(s)]}
+    ct = sitk.ReadImage(task["ct"])
+    mask = sitk.ReadImage(task["mask"])
+    if task.get("pad_air"):
+        ct, mask = _pad_air(ct, mask, int(task["pad_air"]))
+    if kind == "baseline":
+        import open3d  # noqa: F401  (direct_poisson's import, before the clock)
+        fn = baselines.METHODS[task["method"]]
+        return (lambda: fn(ct, mask, params)), lambda s: {"bones": [_surface_out(s)]}
+    if kind == "slicer_default":
+        return (lambda: _slicer_default(ct, mask, float(task["ht"]), float(task["theta_max"]))), \
+            lambda s: {"bones": [_surface_out(s)]}
+    raise ValueError(f"unknown task kind {kind!r}")
+
+
+def run_task(task: dict) -> dict:
+    for p in (ROOT, HERE):
+        if p not in sys.path:
+            sys.path.insert(0, p)
+    out = {"kind": task["kind"], "ok": False}
+    t_cli = time.perf_counter()
+    try:
+        fn, conv = _call(task)
+        out["base_rss_mb"] = _status_mb("VmRSS")
+        prof = None
+        if task.get("cprofile"):
+            import cProfile
+            prof = cProfile.Profile()
+            prof.enable()
+        t0 = t_cli if task["kind"] == "cli" else time.perf_counter()
+        value = fn()
+        out["seconds"] = time.perf_counter() - t0
+        if prof is not None:
+            prof.disable()
+            import io
+            import pstats
+            s = io.StringIO()
+            st = pstats.Stats(prof, stream=s)
+            st.sort_stats("cumulative").print_stats("BoneWatertightLib", 45)
+            s2 = io.StringIO()
+            pstats.Stats(prof, stream=s2).sort_stats("tottime").print_stats(25)
+            out["profile_cumulative"] = s.getvalue()
+            out["profile_tottime"] = s2.getvalue()
+        out["peak_rss_mb"] = _status_mb("VmHWM")
+        out.update(conv(value))
+        out["ok"] = True
+    except BaseException as exc:  # noqa: BLE001 - a failed method is a result
+        out["error"] = f"{type(exc).__name__}: {exc}"
+        out["error_type"] = type(exc).__name__
+        out["traceback"] = traceback.format_exc(limit=8)
+        out["peak_rss_mb"] = _status_mb("VmHWM")
+    return out
+
+
+def run_isolated(task: dict, timeout: float, workdir: str) -> dict:
+    """Run one task in a fresh child process; returns its result (never raises)."""
+    import subprocess
+    import tempfile
+
+    os.makedirs(workdir, exist_ok=True)
+    fd, tpath = tempfile.mkstemp(prefix="task_", suffix=".pkl", dir=workdir)
+    with os.fdopen(fd, "wb") as fh:
+        pickle.dump(task, fh)
+    rpath = tpath[:-4] + "_result.pkl"
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, os.path.abspath(__file__), tpath, rpath],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        output, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()  # the child this call started, by its pid
+        proc.communicate()
+        _unlink(tpath, rpath)
+        return {"kind": task["kind"], "ok": False, "error": f"timeout after {timeout:.0f} s",
+                "process_seconds": time.perf_counter() - t0}
+    wall = time.perf_counter() - t0
+    try:
+        with open(rpath, "rb") as fh:
+            res = pickle.load(fh)
+    except (OSError, EOFError, pickle.UnpicklingError):
+        tail = output.decode(errors="replace")[-1500:]
+        res = {"kind": task["kind"], "ok": False,
+               "error": f"worker died (exit code {proc.returncode}): {tail.strip()[-300:]}"}
+    res["process_seconds"] = wall
+    _unlink(tpath, rpath)
+    return res
+
+
+def _unlink(*paths):
+    for p in paths:
+        try:
+            os.unlink(p)
+        except OSError:
+            pass
+
+
+if __name__ == "__main__":
+    with open(sys.argv[1], "rb") as fh:
+        _task = pickle.load(fh)
+    _res = run_task(_task)
+    with open(sys.argv[2], "wb") as fh:
+        pickle.dump(_res, fh, protocol=pickle.HIGHEST_PROTOCOL)
