@@ -67,9 +67,21 @@ REFINE_SIGMA_MM = 0.4
 REFINE_SIGMA_MIN_VOXELS = 0.5
 # A bone reaches at most max(segment_dilation, BAND_COARSENESS x coarseness) beyond its label.
 BAND_COARSENESS = 1.0
+# Rounds of extra contact passes (each with one voxel more margin) while a pair still crosses.
+CONTACT_RETRIES = 3
+# HT crossings within this distance (mm) of W_H0 are left out of B* (see _bone_surface).
+HT_BEYOND_H0_MM = 1.0
 # Vertices farther than this (mm) from every other bone's voxels are its free surface (where
 # the edge refinement's support is measured).
 FREE_SURFACE_MM = 2.0
+# Cross-parameter limits, checked right after prepare: the smallest extent of each target's
+# segment must span at least this many resample voxels d and this many edge lengths d*.
+MIN_VOXELS_ACROSS = 4.0
+MIN_EDGES_ACROSS = 4.0
+# Bytes per voxel of M0's remeshing grid (step d* / REMESH_EDGE_RATIO over the bone's box):
+# uint8 image and stencil, labels (int32), filled mask, smoothed float32 field, the contour
+# (measured 40-49 B per voxel, mesh included).
+REMESH_BYTES_PER_VOXEL = 64
 
 # Overall progress fraction at the start and end of each stage.
 STAGES = [("open3d", 0.0, 0.03), ("prepare", 0.03, 0.10), ("filter", 0.10, 0.14),
@@ -212,6 +224,9 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
                           band_mm=band_guess, max_memory_gb=params.max_memory_gb,
                           at_border=params.at_border, progress=sub)
     grid, d = prep.grid, prep.grid.spacing
+    size_errors = size_problems(prep, params, names)
+    if size_errors and not keep_going:
+        raise next(iter(size_errors.values()))
     lab, neighbour_values = _select_neighbours(prep.labels, prep.values, prep.targets, neighbours)
     n = len(prep.values)
     c = prep.coarseness
@@ -249,7 +264,7 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     thresholds = {"h0": float(h0), "ht": float(ht), "theta_max": float(params.theta_max),
                   "h0_auto": params.h0 is None, "ht_auto": params.ht is None,
                   "soft_tissue_hu": float(soft), "cortex_hu": float(cortex)}
-    failed = {}
+    failed = dict(size_errors)
 
     def fail(k, exc):
         if not keep_going or not isinstance(exc, BoneWatertightError) or isinstance(exc, CancelledError):
@@ -312,7 +327,26 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     if terr and any(v is not None for v in terr.values()):
         surfaces = {k: [b["vertices"], b["faces"]] for k, b in bones.items()}
         history = _contacts.resolve_contacts(surfaces, fixed, lab.shape, d, params.min_gap,
-                                             progress=sub)
+                                             progress=sub.stage(0.0, 0.6))
+        # The fields are voxel-accurate; the exact test decides. Pairs that still cross get
+        # more passes with a wider margin.
+        for extra in range(1, CONTACT_RETRIES + 1):
+            keys = list(surfaces)
+            crossing = [(a, b) for i, a in enumerate(keys) for b in keys[i + 1:]
+                        if _contacts.pair_report(surfaces[a][0], surfaces[a][1], surfaces[b][0],
+                                                 surfaces[b][1])["crossing_face_pairs"]]
+            if not crossing:
+                break
+            involved = {k for pair in crossing for k in pair}
+            sub_surfaces = {k: surfaces[k] for k in involved}
+            others = dict(fixed)
+            for k in surfaces:
+                if k not in involved:
+                    others[f"bone{k}"] = _contacts.voxelize(surfaces[k][0], surfaces[k][1],
+                                                            lab.shape, d)
+            history += _contacts.resolve_contacts(sub_surfaces, others, lab.shape, d,
+                                                  params.min_gap + extra * d,
+                                                  progress=sub.stage(0.6, 1.0))
         for k, b in bones.items():
             b["vertices"] = surfaces[k][0]
             b["contacts"] = {"passes": [{"moved": rec[k][0], "still_closer_than_gap": rec[k][1]}
@@ -378,6 +412,54 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     return JointResult(bones=results, pairs=pairs, report=report)
 
 
+def size_problems(prep, params: Parameters, names: Optional[dict] = None) -> dict:
+    """Cross-parameter limits, checked before the long work: {target index: error} for each
+    target whose segment's smallest extent on the working grid spans fewer than
+    MIN_VOXELS_ACROSS voxels d (InputError) or MIN_EDGES_ACROSS edge lengths d* (InputError),
+    or whose M0 remeshing grid (step d* / REMESH_EDGE_RATIO over its box grown by the band)
+    would exceed ``max_memory_gb`` or the element limit (MemoryLimitError)."""
+    from .errors import MemoryLimitError
+
+    d = prep.grid.spacing
+    edge = params.edge_length if params.edge_length is not None else d
+    h = edge / _poisson.REMESH_EDGE_RATIO
+    band = max(params.segment_dilation, BAND_COARSENESS * prep.coarseness)
+    limit = params.max_memory_gb * 1024 ** 3
+    problems = {}
+    for k in prep.targets:
+        value = prep.values[k - 1]
+        name = str((names or {}).get(value, value))
+        box = _threshold.bbox_slices(prep.labels == k, 0)
+        extent = np.array([(s.stop - s.start) * d for s in box][::-1])
+        smallest = float(extent.min())
+        dims = " x ".join(f"{v:.1f}" for v in extent)
+        remesh = float(np.prod(np.ceil((extent + 2 * band) / h)
+                               + 2 * _poisson.REMESH_PAD_STEPS + 1))
+        over = max(remesh * REMESH_BYTES_PER_VOXEL / limit, remesh / _prepare.MAX_GRID_VOXELS)
+        if d * MIN_VOXELS_ACROSS > smallest:
+            problems[k] = InputError(
+                f"The resample spacing {d:g} mm is too coarse for segment {name}: its smallest "
+                f"extent is {smallest:.1f} mm (box {dims} mm), fewer than "
+                f"{MIN_VOXELS_ACROSS:g} voxels. Use a spacing of at most "
+                f"{np.floor(smallest / MIN_VOXELS_ACROSS * 100) / 100:g} mm, or check the "
+                "segment.")
+        elif edge * MIN_EDGES_ACROSS > smallest:
+            problems[k] = InputError(
+                f"edge_length {edge:g} mm is too long for segment {name}: its smallest extent "
+                f"is {smallest:.1f} mm (box {dims} mm), fewer than {MIN_EDGES_ACROSS:g} edges. "
+                f"Use an edge_length of at most "
+                f"{np.floor(smallest / MIN_EDGES_ACROSS * 100) / 100:g} mm (or auto).")
+        elif over > 1.0:
+            problems[k] = MemoryLimitError(
+                f"edge_length {edge:g} mm is too short for segment {name} (box {dims} mm): "
+                f"remeshing its surface needs a grid of {remesh / 1e6:.0f} M voxels, about "
+                f"{remesh * REMESH_BYTES_PER_VOXEL / 1024 ** 3:.1f} GB (limit "
+                f"{params.max_memory_gb:g} GB). Use an edge_length of at least "
+                f"{np.ceil(edge * over ** (1 / 3) * 100) / 100:g} mm (or auto), or raise "
+                "max_memory_gb.")
+    return problems
+
+
 def _pair_name(k, own, name_of):
     return "unlabelled bone" if k >= own.other else name_of(k)
 
@@ -420,19 +502,30 @@ def _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, progress, name, st
     progress(0.2, f"{name}: visible points")
     t0 = time.perf_counter()
     origin = masks.origin
-    candidates = voxel_points(boundary_voxels(masks.solid_h0), d)
+    # The hyper-spherical mapping sees W_H0's own boundary (inner walls of cavities and pores
+    # included: eq. (1) hides them), joined by the low-density bone out of reach of W_H0.
+    candidates = voxel_points(boundary_voxels(masks.w_h0 | masks.far), d)
     if len(candidates) < 10:
         raise ReconstructionError(
             f"Almost nothing of {name} is in the threshold windows ({len(candidates)} boundary "
             "points): lower H0/HT or leave them on auto, and check the segment.")
-    vis_idx, vis_info = visible_points(candidates, d, views=params.views,
-                                       view_distance=params.view_distance,
-                                       log_radius=params.log_radius,
-                                       progress=progress.stage(0.2, 0.5))
-    visible = candidates[vis_idx]
+    vis_idx, vis_info, every = visible_points(candidates, d, views=params.views,
+                                              view_distance=params.view_distance,
+                                              log_radius=params.log_radius,
+                                              progress=progress.stage(0.2, 0.5), full=True)
+    visible = candidates[vis_idx]       # Poisson's input: the thinned visible points
+    visible_all = candidates[every]     # S(P_H0) for the deformation: all of them
     # B* = S(P_H0) U (P_HT - P_H0); of P_HT - P_H0 only the outer boundary can be reached by
     # the directional search, placed sub-voxel where the CT crosses HT.
     b_ht = crossing_points(ct_f[masks.box], masks.occupancy, ht, d)
+    # Of P_HT - P_H0 the deformation needs the bone that W_H0 misses (low-density bone, a
+    # cortex below H0): HT crossings more than HT_BEYOND_H0_MM beyond W_H0. Nearer ones are the
+    # partial-volume foot of dense cortex, which would only pull the surface outward.
+    if len(b_ht):
+        from .mesh.distance import distance_outside
+
+        gap_to_h0 = distance_outside(masks.w_h0) * d
+        b_ht = b_ht[sample_field(gap_to_h0, b_ht, d) > HT_BEYOND_H0_MM]
     times.visible = time.perf_counter() - t0
     progress(0.5, f"{name}: Poisson surface M0")
     t0 = time.perf_counter()
@@ -450,7 +543,8 @@ def _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, progress, name, st
         others_distance = dist[np.ix_(*idx)].astype(np.float32)
     return {"masks": masks, "m0": m0, "raw_vertices": raw.n_vertices,
             "others_distance": others_distance,
-            "visible": visible + origin, "b_ht": b_ht + origin, "n_candidates": len(candidates),
+            "visible": visible + origin, "visible_all": visible_all + origin,
+            "b_ht": b_ht + origin, "n_candidates": len(candidates),
             "vis_info": vis_info, "times": times, "separation": separation,
             "vertices": m0.vertices.copy(), "faces": m0.faces, "history": [],
             "refinement": Refinement(applied=False), "contacts": {}}
@@ -461,7 +555,7 @@ def _shape_bone(b, ct_smooth, ht, params, d, allowed, progress):
     masks, m0 = b["masks"], b["m0"]
     origin = masks.origin
     t0 = time.perf_counter()
-    constraints = np.vstack([b["visible"], b["b_ht"]])
+    constraints = np.vstack([b["visible_all"], b["b_ht"]])
     if allowed is not None:
         constraints = constraints[allowed(constraints)]
     b["constraints"] = constraints

@@ -105,7 +105,7 @@ def test_cli_writes_surface_and_report(case, lps_run):
     assert all(isinstance(v, float) and v >= 0 for v in stages.values()), stages
     assert stages["total"] > 0 and stages["poisson"] > 0
     assert report["pipeline"]["timings"] == stages
-    assert report["pipeline"]["constants"]["deform"]["SEARCH_NEIGHBOURS"] == 8
+    assert report["pipeline"]["constants"]["deform"]["STATIONARY_MOVE"] == 0.02
 
 
 def test_cli_ras_is_lps_with_x_y_negated(case, lps_run, tmp_path):

@@ -100,19 +100,25 @@ def test_poisson_sphere_is_watertight_genus0_with_right_radius():
 
 def test_fig9_sphere_deforms_outward_shell_by_shell():
     """Paper Fig. 9: a sphere of radius 100 deformed towards point shells of radius 100, 120,
-    140, 160 reaches 120, 140, 160 after 1, 2, 3 directional steps."""
+    140, 160 reaches 120, 140, 160 after 1, 2, 3 directional steps - at the paper's search
+    parameters (delta = 0.75 d*, radius 1.5 d*, the schema's defaults), with psi the point
+    nearest to the search centre v_c (eq. (7)); the shells are about one d* apart."""
+    from BoneWatertightLib.params import SCHEMA
+
     rng = np.random.default_rng(1)
     shells = []
     for r in (100, 120, 140, 160):
         p = rng.normal(size=(40000, 3))
         shells.append(r * p / np.linalg.norm(p, axis=1, keepdims=True))
     cloud = np.vstack(shells)
-    mesh = sphere_mesh(100.0, 8.0)
+    mesh = sphere_mesh(100.0, 20.0)
     d_star = mean_edge_length(mesh.vertices, mesh.faces)
-    # Search ball: centre 20 mm out (one shell), radius 8 mm, so it holds the next shell only.
+    assert 15.0 < d_star < 30.0
+    offset, radius = SCHEMA["search_offset"].default, SCHEMA["search_radius"].default
+    assert 0.5 <= offset <= 1.0 and 1.0 <= radius <= 3 ** 0.5  # the paper's ranges
     alpha, beta = 1.0, 1e-3
     deformer = Deformer(mesh.vertices, mesh.faces, cloud, lambda p: np.ones(len(p), bool), d_star,
-                        iterations=3, search_offset=20.0 / d_star, search_radius=8.0 / d_star,
+                        iterations=3, search_offset=offset, search_radius=radius,
                         alpha=alpha, beta=beta)
     deformer.clean_v = deformer.v.copy()
     for j, expected in enumerate((120.0, 140.0, 160.0), start=1):
@@ -120,10 +126,28 @@ def test_fig9_sphere_deforms_outward_shell_by_shell():
         new, matched, _ = deformer.step(3, 3, alpha, beta)
         assert new is not None and matched.mean() > 0.95
         deformer.v = new
-        radius = np.linalg.norm(new, axis=1)
-        assert abs(np.median(radius) - expected) < 3.0, (expected, np.median(radius))
-        assert radius.std() < 1.0
+        radius_now = np.linalg.norm(new, axis=1)
+        assert abs(np.median(radius_now) - expected) < 3.0, (expected, np.median(radius_now))
+        assert radius_now.std() < 2.0
         assert check_surface(new, mesh.faces).ok
+
+
+def test_search_takes_the_point_nearest_the_search_centre():
+    """With psi nearest v (not v_c) M0 would stay pinned to its own points: here a vertex on a
+    shell at 100 with the next shell 15 ahead moves to it."""
+    rng = np.random.default_rng(2)
+    shells = []
+    for r in (100, 115):
+        p = rng.normal(size=(30000, 3))
+        shells.append(r * p / np.linalg.norm(p, axis=1, keepdims=True))
+    mesh = sphere_mesh(100.0, 20.0)
+    d_star = mean_edge_length(mesh.vertices, mesh.faces)
+    deformer = Deformer(mesh.vertices, mesh.faces, np.vstack(shells), lambda p: np.ones(len(p), bool),
+                        d_star, iterations=1)
+    normals = -mesh.vertices / np.linalg.norm(mesh.vertices, axis=1, keepdims=True) * -1
+    psi, matched, _ = deformer.match(mesh.vertices, normals)
+    reach = np.linalg.norm(psi[matched], axis=1)
+    assert matched.mean() > 0.95 and np.median(reach) > 112.0
 
 
 # ----------------------------------------------------------------- end to end on phantoms

@@ -176,12 +176,15 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
         rhs_p = rhs[idx] - A[idx][:, rest] @ v[rest]
         new = v.copy()
         new[idx] = np.column_stack([spsolve(A_pp, rhs_p[:, c]) for c in range(3)])
-        new, _, _ = safe_update(v, new, faces, intersections=False)
+        new, ok, _ = safe_update(v, new, faces, intersections=False)
+        if not ok:
+            new = v
         if np.array_equal(new, v):
             stiffness *= 2.0  # stuck: let the neighbourhood move more as a whole
         v = new
-    checked, _, _ = safe_update(start, v, faces, intersections=True)
-    v = checked
+    checked, ok, _ = safe_update(start, v, faces, intersections=True)
+    # safe_update gives up after its rounds: then keep the verified input
+    v = checked if ok else start
     beyond = int((sample_field(phi, v, spacing, cval=-FAR) > -0.5 * gap).sum())
     return v + origin, beyond, int(moved.sum())
 

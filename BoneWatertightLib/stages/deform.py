@@ -13,10 +13,17 @@ c_i = (psi(v_i) - v_i) / (N - j + 1) (eq. (16)). The matrix is symmetric positiv
 iterate and preconditioned by the diagonal: omega changes every iteration, which rules out reusing
 a factorisation, and warm-started CG converges in a few dozen products.
 
-Directional search (§3.3): a vertex inside the bone searches a ball of radius r around
-v + n delta (outward), a vertex outside around v - n delta (inward); the match is the point of
-B* in that ball closest to v. alpha and beta halve when the mean step stalls. A step that flips
-any triangle is redone with a doubled beta; if that fails, the previous iterate is kept.
+Directional search (§3.3, eq. (7)): a vertex inside the bone searches a ball of radius r around
+v_c = v + n delta (outward), a vertex outside around v_c = v - n delta (inward), with
+delta in [0.5, 1] d* and r in [1, sqrt(3)] d* (the paper's ranges); the match psi is the point
+of B* in that ball nearest to v_c. (Nearest to v instead would pin M0: with r > delta the ball
+holds v itself, and B* holds S(P_H0), the points M0 was fitted to.)
+
+Control weights (§2.4): omega_i = 1 for matched vertices; a vertex that has become stationary
+(moved less than STATIONARY_MOVE d*) gets omega = 1 too (psi = its match, or itself), and at the
+stable stage - when progress stalls and alpha, beta are lowered - every vertex does. alpha and
+beta halve when the mean step stalls. A step that flips any triangle is redone with a doubled
+beta; if that fails, the previous iterate is kept.
 """
 
 from __future__ import annotations
@@ -27,8 +34,6 @@ from scipy.spatial import cKDTree
 
 from ..mesh.operators import laplacian, ring_mean, safe_update, solve_spd, vertex_normals
 
-# Candidate constraint points per search ball (nearest to the ball's centre).
-SEARCH_NEIGHBOURS = 8
 # A match whose normal step differs from its 1-ring's mean by more than this many d* is noise.
 SPIKE_TOLERANCE = 0.5
 # Progress stalls when the mean move is below this many d*: alpha and beta halve...
@@ -41,6 +46,8 @@ MAX_EXTRA_ITERATIONS = 4
 FULL_CHECK_EVERY = 3
 # Global back-off attempts (beta doubled each time) before an iteration is rejected.
 STEP_ATTEMPTS = 3
+# A vertex that moved less than this many d* in an iteration is stationary (omega = 1).
+STATIONARY_MOVE = 0.02
 
 
 class Deformer:
@@ -91,19 +98,10 @@ class Deformer:
         delta = self.search_offset * self.d
         radius = self.search_radius * self.d
         centre = v + np.where(inside[:, None], 1.0, -1.0) * normals * delta
-        # psi = of the constraint points within the search ball, the one nearest to v (eq. (7)
-        # restricted to the directional search area). Measured on the phantoms: taking the one
-        # nearest to v_c instead pushes the surface ~0.3 mm outward.
-        k = SEARCH_NEIGHBOURS
-        dist, idx = self.tree.query(centre, k=k, distance_upper_bound=radius, workers=-1)
-        valid = np.isfinite(dist)
-        cand = self.constraints[np.where(valid, idx, 0)]  # (n, k, 3)
-        dv = np.linalg.norm(cand - v[:, None, :], axis=2)
-        dv[~valid] = np.inf
-        best = np.argmin(dv, axis=1)
-        rows = np.arange(len(v))
-        matched = np.isfinite(dv[rows, best])
-        psi = cand[rows, best]
+        # psi: the point of B* in the search ball nearest to its centre v_c (eq. (7)).
+        dist, idx = self.tree.query(centre, k=1, distance_upper_bound=radius, workers=-1)
+        matched = np.isfinite(dist)
+        psi = self.constraints[np.where(matched, idx, 0)]
         # Keep only the normal component of the match: neighbouring vertices matched to the same
         # voxel point would otherwise slide together and fold the triangles between them.
         along = np.einsum("ij,ij->i", psi - v, normals)
@@ -120,13 +118,20 @@ class Deformer:
         A = (alpha * self.LtL + sp.diags(diag_extra + beta)).tocsr()
         return solve_spd(A, rhs, x0)
 
-    def step(self, j, total, alpha, beta, full_check=True):
+    def step(self, j, total, alpha, beta, full_check=True, stationary=None, stable=False):
         v = self.v
         normals = vertex_normals(v, self.f)
         psi, matched, inside = self.match(v, normals)
-        w = matched.astype(np.float64)
+        # Control weights: matched vertices; stationary ones; all at the stable stage.
+        control = matched.copy()
+        if stationary is not None:
+            control |= stationary
+        if stable:
+            control[:] = True
+        w = control.astype(np.float64)
         c = (psi - v) / float(max(total - j + 1, 1))
         c[~matched] = 0.0
+        psi = np.where(matched[:, None], psi, v)
         lap_rhs = self.LtL @ v
         rhs = w[:, None] * psi + alpha * (lap_rhs + w[:, None] * (v + c)) + beta * v
         diag_extra = w + alpha * w
@@ -154,15 +159,19 @@ class Deformer:
         self.clean_v = self.v.copy()
         extra = 0
         j = 1
+        stationary = None
+        stable = False
         while j <= total + extra:
             last = j >= total + extra
             new, matched, flipped = self.step(min(j, total), total, alpha, beta,
-                                              full_check=last or j % FULL_CHECK_EVERY == 0)
+                                              full_check=last or j % FULL_CHECK_EVERY == 0,
+                                              stationary=stationary, stable=stable)
             if new is None:
                 self.history.append({"iteration": j, "rejected": True, "flipped": flipped})
                 break
             move = np.linalg.norm(new - self.v, axis=1)
             self.v = new
+            stationary = move < STATIONARY_MOVE * self.d
             rec = {"iteration": j, "alpha": alpha, "beta": beta, "matched": int(matched.sum()),
                    "mean_move": float(move.mean()), "max_move": float(move.max())}
             self.history.append(rec)
@@ -173,6 +182,7 @@ class Deformer:
             if move.mean() < STALL_MOVE * self.d:
                 alpha = max(alpha * 0.5, MIN_WEIGHT_FRACTION * self.alpha)
                 beta = max(beta * 0.5, MIN_WEIGHT_FRACTION * self.beta)
+                stable = True
             # Still moving after N iterations: a few more full steps (c = psi - v), at most 4.
             if j == total + extra and move.mean() > STALL_MOVE * self.d and extra < MAX_EXTRA_ITERATIONS:
                 extra += 1

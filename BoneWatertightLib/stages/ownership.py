@@ -286,6 +286,10 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     if progress:
         progress(0.6, "flooding from the markers")
     ws = flood_from_markers(markers, levels, fg)
+    # A visible joint space (cartilage between two cortices, below H0, in a valley of at least
+    # SEEN_VALLEY_QUANTA quanta) is no bone: it joins no bone's W_HT (removed below, after the
+    # contacts between the basins are measured).
+    joint_space = fg & ~strong & (cores == 0) & (levels >= SEEN_VALLEY_QUANTA)
     del levels
     if progress:
         progress(0.8, "contacts between bones")
@@ -318,6 +322,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     grow: dict = {}
     for piece, a, _, _ in merged:
         grow.setdefault(a, []).append(piece)
+    ws[joint_space] = 0
     owner = np.zeros(shape, np.uint16)
     for i, (sl, reg) in regions.items():
         own = ws == i
@@ -359,6 +364,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     info = {"core_depth_mm": {int(k): float(v) for k, v in core_depth.items()},
             "contact_zone_mm": r_contact, "valley_quantum_hu": quantum, "label_level_hu": t_low,
             "foreground_voxels": int(fg.sum()), "unlabelled_pieces": n_pieces,
+            "joint_space_voxels": int(joint_space.sum()),
             "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
                                    "contact_mm2": round(s, 1)} for p, a, f, s in merged]}
     if progress:

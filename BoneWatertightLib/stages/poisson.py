@@ -11,6 +11,9 @@ a smooth scalar field on a padded grid is closed and manifold; the checker confi
 
 from __future__ import annotations
 
+import contextlib
+import os
+
 import numpy as np
 from scipy import ndimage
 
@@ -31,6 +34,8 @@ REMESH_SMOOTH_SIGMA = 0.8
 # Windowed-sinc relaxation of the contour.
 SINC_ITERATIONS = 15
 SINC_PASS_BAND = 0.1
+# Fewest triangles of a remeshed M0 (a tetrahedron); fewer: the surface was lost.
+MIN_REMESH_FACES = 4
 
 
 def import_open3d():
@@ -79,6 +84,25 @@ def mask_normals(mask: np.ndarray, points_grid_mm: np.ndarray, spacing: float) -
     return n / np.maximum(length, 1e-12)
 
 
+@contextlib.contextmanager
+def native_stderr_silenced():
+    """File descriptor 2 to /dev/null within the block: PoissonRecon prints its warnings
+    ("getValue assumes leaf node", many lines) straight to the C stderr, past open3d's
+    verbosity, and they would break the command line's one-line errors."""
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr at all
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int) -> Surface:
     """Screened Poisson (open3d) on oriented points; the largest connected component.
 
@@ -98,7 +122,8 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int) -> Surf
     pcd.points = o3d.utility.Vector3dVector(points)
     pcd.normals = o3d.utility.Vector3dVector(normals)
     # n_threads=-1 is ~10x slower than 1 thread here (thread oversubscription): measured.
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error), \
+            native_stderr_silenced():
         mesh, _density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
             pcd, depth=depth, scale=POISSON_SCALE, linear_fit=False, n_threads=1)
     tri = np.asarray(mesh.triangles)
@@ -153,7 +178,14 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         occ = lab == int(np.argmax(sizes))
     occ = ndimage.binary_fill_holes(occ)
     field = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
-    return contour(field, lo, h, 0.5, smooth_iterations)
+    out = contour(field, lo, h, 0.5, smooth_iterations) if field.max() > 0.5 else None
+    if out is None or out.n_faces < MIN_REMESH_FACES:
+        # A Poisson surface only a few grid steps across smooths away below the 0.5 level.
+        raise ReconstructionError(
+            f"Remeshing M0 at edge length {edge_length:g} mm left {out.n_faces if out else 0} "
+            "triangles: the bone is too small for that edge length. Use a smaller edge_length "
+            "(or leave it on auto) and a finer resample spacing.")
+    return out
 
 
 def contour(field_zyx: np.ndarray, origin, h: float, level: float,

@@ -15,9 +15,16 @@ import SimpleITK as sitk
 from ..errors import (BorderError, EmptySegmentError, InputError, MemoryLimitError,
                       NoOverlapError, VolumeTypeError)
 
-# Bytes held per resampled voxel at the peak of the pipeline: the float32 CT, the filtered CT,
-# a few boolean masks and two float64 distance maps of the threshold stage.
-BYTES_PER_VOXEL = 40
+# Peak memory of a run above the RSS before the call = BYTES_PER_VOXEL x working-grid voxels
+# + MEMORY_OVERHEAD_BYTES (meshes, point sets, KD-trees, solver workspaces). Measured by
+# Testing/bench_memory.py (peak RSS, each case in its own process) on the phantoms and the real
+# CTs: 57-205 B per voxel all included, highest with neighbours or unlabelled bone near the
+# target (the contact stage), with convoluted surfaces (the meshes) and on small grids; these
+# constants put every measured case at <= 0.76 of the estimate.
+BYTES_PER_VOXEL = 192
+MEMORY_OVERHEAD_BYTES = 160 * 2 ** 20
+# Most voxels of a working grid, whatever max_memory_gb allows (an element-count limit).
+MAX_GRID_VOXELS = 1_000_000_000
 # Automatic resample spacing: the finest CT spacing times AUTO_SPACING_FACTOR, clamped.
 AUTO_SPACING_FACTOR = 0.5
 AUTO_SPACING_RANGE_MM = (0.3, 1.0)
@@ -119,9 +126,38 @@ def auto_spacing(ct: sitk.Image) -> float:
     return float(np.clip(min(ct.GetSpacing()) * AUTO_SPACING_FACTOR, lo, hi))
 
 
+def grid_voxels(extent_mm: np.ndarray, spacing: float) -> float:
+    """Voxels of a working grid over ``extent_mm`` (x, y, z) at ``spacing`` (an upper bound)."""
+    return float(np.prod(np.ceil(np.asarray(extent_mm, dtype=np.float64) / spacing) + 1))
+
+
 def estimate_memory_bytes(extent_mm: np.ndarray, spacing: float) -> float:
-    voxels = float(np.prod(np.ceil(np.asarray(extent_mm) / spacing) + 1))
-    return voxels * BYTES_PER_VOXEL
+    """Peak memory of a run on that working grid, beyond the inputs the caller holds
+    (Testing/bench_memory.py measures it against the peak RSS)."""
+    return grid_voxels(extent_mm, spacing) * BYTES_PER_VOXEL + MEMORY_OVERHEAD_BYTES
+
+
+def check_memory(extent_mm: np.ndarray, spacing: float, max_memory_gb: float) -> float:
+    """The estimate (bytes); MemoryLimitError, naming a spacing that fits, when it exceeds
+    ``max_memory_gb`` or the grid has more than MAX_GRID_VOXELS voxels."""
+    need = estimate_memory_bytes(extent_mm, spacing)
+    voxels = grid_voxels(extent_mm, spacing)
+    limit = max_memory_gb * 1024 ** 3
+    if need <= limit and voxels <= MAX_GRID_VOXELS:
+        return need
+    allowed = min((limit - MEMORY_OVERHEAD_BYTES) / BYTES_PER_VOXEL, MAX_GRID_VOXELS)
+    e = np.asarray(extent_mm, dtype=np.float64)
+    what = (f"about {need / 1024 ** 3:.1f} GB (limit {max_memory_gb:g} GB)" if need > limit else
+            f"{voxels / 1e6:.0f} M voxels (at most {MAX_GRID_VOXELS / 1e6:.0f} M)")
+    advice = "raise max_memory_gb"
+    if allowed >= 8:
+        fit = spacing * (voxels / allowed) ** (1.0 / 3.0)
+        while grid_voxels(e, fit) > allowed:
+            fit *= 1.01
+        advice = f"use a spacing of at least {np.ceil(fit * 100) / 100:.2f} mm, or " + advice
+    raise MemoryLimitError(
+        f"Resampling the {e[0]:.0f} x {e[1]:.0f} x {e[2]:.0f} mm region at {spacing:g} mm would "
+        f"need {what}: {advice}.")
 
 
 def prepare(ct: sitk.Image, mask: sitk.Image, *, spacing: float | None = None,
@@ -174,14 +210,7 @@ def prepare(ct: sitk.Image, mask: sitk.Image, *, spacing: float | None = None,
 
     d = spacing if spacing else auto_spacing(ct)
     extent_mm = (crop_size - 1) * spacing_ct
-    need = estimate_memory_bytes(extent_mm, d)
-    limit = max_memory_gb * 1024 ** 3
-    if need > limit:
-        fit = d * (need / limit) ** (1.0 / 3.0)
-        raise MemoryLimitError(
-            f"Resampling the {extent_mm[0]:.0f} x {extent_mm[1]:.0f} x {extent_mm[2]:.0f} mm region at "
-            f"{d:g} mm would need about {need / 1024 ** 3:.1f} GB (limit {max_memory_gb:g} GB): "
-            f"use a spacing of at least {np.ceil(fit * 100) / 100:.2f} mm, or raise max_memory_gb.")
+    need = check_memory(extent_mm, d, max_memory_gb)
 
     ct_crop = sitk.RegionOfInterest(ct, [int(v) for v in crop_size], [int(v) for v in lo_c])
     seg_crop = sitk.RegionOfInterest(seg, [int(v) for v in crop_size], [int(v) for v in lo_c])
@@ -219,6 +248,8 @@ def prepare(ct: sitk.Image, mask: sitk.Image, *, spacing: float | None = None,
 # (mm, and at least CUT_EXTENSION_VOXELS CT voxels), with CT and labels replicated.
 CUT_EXTENSION_MM = 5.0
 CUT_EXTENSION_VOXELS = 2
+# Largest label value (the label map is handled as uint32).
+MAX_LABEL_VALUE = 2 ** 32 - 1
 
 
 @dataclass
@@ -261,7 +292,8 @@ class PreparedLabels:
 
 
 def labels_on_ct_grid(ct: sitk.Image, labels: sitk.Image) -> np.ndarray:
-    """The label map resampled nearest-neighbour onto the CT grid, as a (z, y, x) uint32 array."""
+    """The label map resampled nearest-neighbour onto the CT grid, as a (z, y, x) unsigned
+    integer array (uint8/16/32; a read-only view of ``labels`` when it is on the CT grid)."""
     if not isinstance(labels, sitk.Image):
         raise EmptySegmentError("No segmentation was given: select the segment of the bone.")
     if labels.GetDimension() != 3 or labels.GetNumberOfComponentsPerPixel() != 1:
@@ -273,14 +305,27 @@ def labels_on_ct_grid(ct: sitk.Image, labels: sitk.Image) -> np.ndarray:
         if not np.all(np.isfinite(arr)) or not np.array_equal(arr, np.round(arr)) or arr.min() < 0:
             raise InputError("The segmentation has non-integer or negative values: it is not a "
                              "label map.")
-    img = sitk.Cast(labels, sitk.sitkUInt32)
+    if labels.GetPixelID() not in (sitk.sitkUInt8, sitk.sitkUInt16, sitk.sitkUInt32):
+        # Never cast a value that uint32 cannot hold (-5 or 2^32 + 1 would become another label).
+        mm = sitk.MinimumMaximumImageFilter()
+        mm.Execute(labels)
+        if mm.GetMinimum() < 0 or mm.GetMaximum() > MAX_LABEL_VALUE:
+            raise InputError(
+                f"The segmentation holds values from {mm.GetMinimum():.0f} to "
+                f"{mm.GetMaximum():.0f}; labels must be 1 to {MAX_LABEL_VALUE} (0 is the "
+                "background). Renumber the labels.")
+    # Unsigned labels keep their pixel type: a uint32 copy of a whole-body CT's grid is GBs.
+    unsigned = labels.GetPixelID() in (sitk.sitkUInt8, sitk.sitkUInt16, sitk.sitkUInt32)
+    img = labels if unsigned else sitk.Cast(labels, sitk.sitkUInt32)
     same = (labels.GetSize() == ct.GetSize()
             and np.allclose(labels.GetOrigin(), ct.GetOrigin(), atol=1e-4)
             and np.allclose(labels.GetSpacing(), ct.GetSpacing(), atol=1e-6)
             and np.allclose(labels.GetDirection(), ct.GetDirection(), atol=1e-6))
     if not same:
-        img = sitk.Resample(img, ct, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt32)
-    return sitk.GetArrayFromImage(img)
+        img = sitk.Resample(img, ct, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
+                            img.GetPixelID())
+    # the caller's own image is only read: a read-only view of it, not a copy
+    return sitk.GetArrayViewFromImage(img) if img is labels else sitk.GetArrayFromImage(img)
 
 
 def check_finite_ct(ct: sitk.Image) -> None:
@@ -387,19 +432,13 @@ def prepare_labels(ct: sitk.Image, labels: sitk.Image, targets, *, spacing: floa
                 pad_hi[ax] = max(pad_hi[ax], n)
     d = float(spacing) if spacing else auto_spacing(ct)
     extent_mm = (crop_size + pad_lo + pad_hi - 1) * spacing_ct
-    need = estimate_memory_bytes(extent_mm, d)
-    limit = max_memory_gb * 1024 ** 3
-    if need > limit:
-        fit = d * (need / limit) ** (1.0 / 3.0)
-        raise MemoryLimitError(
-            f"Resampling the {extent_mm[0]:.0f} x {extent_mm[1]:.0f} x {extent_mm[2]:.0f} mm region "
-            f"at {d:g} mm would need about {need / 1024 ** 3:.1f} GB (limit {max_memory_gb:g} GB): "
-            f"use a spacing of at least {np.ceil(fit * 100) / 100:.2f} mm, or raise max_memory_gb.")
+    need = check_memory(extent_mm, d, max_memory_gb)
     start = [int(v) for v in lo_c]
     extent = [int(v) for v in crop_size]
     ct_crop = sitk.RegionOfInterest(ct, extent, start)
     native_ct = sitk.GetArrayFromImage(ct_crop).astype(np.float32)
-    native_lab = lab_ct[lo_c[2]:hi_c[2] + 1, lo_c[1]:hi_c[1] + 1, lo_c[0]:hi_c[0] + 1]
+    # a copy: a view would keep the whole CT-sized label array alive for the entire run
+    native_lab = lab_ct[lo_c[2]:hi_c[2] + 1, lo_c[1]:hi_c[1] + 1, lo_c[0]:hi_c[0] + 1].copy()
     lab_img = sitk.GetImageFromArray(np.ascontiguousarray(native_lab, dtype=np.uint32))
     lab_img.CopyInformation(ct_crop)
     ct_crop = sitk.Cast(ct_crop, sitk.sitkFloat32)

@@ -39,7 +39,8 @@ class BoneMasks:
     Arrays are (z, y, x) bool on the box; ``origin`` is the box corner in grid millimetres
     (x, y, z). ``w_h0``/``w_ht``: the two windows of bone k after morphology; ``solid_h0``:
     W_H0 with pores plugged, cavities filled and the out-of-reach part of W_HT joined (the
-    visible-point candidates come from its boundary); ``occupancy``: the filled bone at HT.
+    visible-point candidates come from W_H0's own boundary joined by ``far``, the part of the
+    filled W_HT out of the deformation's reach of W_H0); ``occupancy``: the filled bone at HT.
     """
 
     box: tuple
@@ -48,6 +49,7 @@ class BoneMasks:
     w_ht: np.ndarray
     solid_h0: np.ndarray
     occupancy: np.ndarray
+    far: np.ndarray = None
     info: dict = field(default_factory=dict)
 
 
@@ -142,7 +144,7 @@ def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.
     info = {"voxels_h0": int(w_h0.sum()), "voxels_ht": int(w_ht.sum()),
             "voxels_core": int(core.sum()), "voxels_out_of_reach": int((far & ~w_h0).sum())}
     return BoneMasks(box=box, origin=origin, w_h0=w_h0, w_ht=w_ht, solid_h0=solid_h0,
-                     occupancy=occupancy, info=info)
+                     occupancy=occupancy, far=far, info=info)
 
 
 def erosions_to_separate(ct: np.ndarray, owner: np.ndarray, k: int, spacing: float, *,

@@ -99,7 +99,7 @@ def thin_points(points: np.ndarray, spacing: float, max_points: int = MAX_HULL_P
 
 def visible_points(points: np.ndarray, spacing: float, *, views: int = 14,
                    view_distance: float = 20.0, log_radius: float = 3.6,
-                   progress=None) -> tuple[np.ndarray, dict]:
+                   progress=None, full: bool = False) -> tuple:
     """Union of the points visible from the viewpoints, cleaned of isolated border noise.
 
     Parameters
@@ -115,12 +115,19 @@ def visible_points(points: np.ndarray, spacing: float, *, views: int = 14,
     log_radius : float
         Flip radius exponent, see :func:`hpr_visible`.
     progress : callable, optional
+    full : bool
+        Also return the indices of every candidate that is visible (HPR runs on a thinned
+        lattice of at most MAX_HULL_POINTS; each candidate takes its nearest tested point's
+        verdict).
 
     Returns
     -------
     indices : (k,) int array into ``points``
+        The visible points of the thinned lattice.
     info : dict
         Per-view counts for the report.
+    every : (j,) int array into ``points``
+        Only with ``full``: every visible candidate.
     """
     sub = thin_points(points, spacing)
     all_points, points = points, points[sub]
@@ -149,8 +156,21 @@ def visible_points(points: np.ndarray, spacing: float, *, views: int = 14,
     tree = cKDTree(points[vis])
     radius = CLEAN_RADIUS_VOXELS * spacing * max(1.0, np.sqrt(len(all_points) / max(len(points), 1)))
     counts = tree.query_ball_point(points[vis], r=radius, return_length=True, workers=-1)
-    clean = sub[vis[counts >= CLEAN_MIN_NEIGHBOURS]]
+    kept = vis[counts >= CLEAN_MIN_NEIGHBOURS]
+    clean = sub[kept]
     info = {"views_used": len(per_view), "per_view": per_view, "candidates": int(len(points)),
             "visible_raw": int(len(vis)),
             "visible": int(len(clean)), "removed_isolated": int(len(vis) - len(clean))}
-    return clean, info
+    if not full:
+        return clean, info
+    # Every candidate takes the visibility of its nearest tested point (the thinning keeps a
+    # lattice of them): the deformation gets all of S(P_H0), Poisson the thinned copy.
+    if len(sub) == len(all_points):
+        return clean, info, clean
+    flag = np.zeros(len(points), bool)
+    flag[kept] = True
+    dist, nearest = cKDTree(points).query(all_points, workers=-1)
+    reach = np.sqrt(3.0) * spacing * max(1.0, np.sqrt(len(all_points) / max(len(points), 1)))
+    every = np.flatnonzero(flag[nearest] & (dist <= reach))
+    info["visible_full"] = int(len(every))
+    return clean, info, every
