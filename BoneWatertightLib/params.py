@@ -200,7 +200,7 @@ class Parameters:
     spacing: Optional[float] = param(
         None, "prepare", "Resampling", label="Resample spacing d", unit="mm",
         minimum=0.05, maximum=5.0, step=0.05, decimals=2,
-        auto="half the finest CT spacing, clamped to 0.3-1.0 mm",
+        auto="the finest of 0.5-1.0 mm whose working grid has at most 8 M voxels",
         paper="0.2-0.3 mm long bones, 0.1-0.2 mm vertebrae",
         help="Isotropic resample spacing d of the working grid; coarser is faster")
     margin: float = param(

@@ -168,3 +168,27 @@ def test_poisson_warnings_do_not_reach_stderr(capfd):
     except (InputError, ReconstructionError):
         pass
     assert "WARNING" not in capfd.readouterr().err
+
+
+# ---------------------------------------------------------------------------- automatic spacing
+
+def test_auto_spacing_is_the_finest_measured_step_that_keeps_the_grid_small():
+    """Issue 11's rule: 0.5 mm unless the working grid would pass AUTO_GRID_VOXELS, then the
+    finest 0.01 mm step that fits, at most 1 mm."""
+    lo, hi = prepare.AUTO_SPACING_RANGE_MM
+    vertebra = np.array([60.0, 55.0, 45.0])
+    assert prepare.auto_spacing(vertebra) == lo
+    femur = np.array([113.0, 80.0, 175.0])  # the benchmark femur's crop
+    d = prepare.auto_spacing(femur)
+    assert lo < d < hi
+    assert prepare.grid_voxels(femur, d) <= prepare.AUTO_GRID_VOXELS
+    assert prepare.grid_voxels(femur, d - 0.01) > prepare.AUTO_GRID_VOXELS
+    assert prepare.auto_spacing(np.array([400.0, 400.0, 900.0])) == hi
+    # the estimate at the automatic spacing of a femur stays within the issue's 2 GB
+    assert prepare.estimate_memory_bytes(femur, d) <= 2 * 1024 ** 3
+
+
+def test_auto_spacing_is_what_a_run_uses():
+    scene = _phantomish_scene()
+    res = reconstruct(scene.ct(), scene.label_map(), Parameters(**FAST))
+    assert res.report.input["resample_spacing_mm"] == pytest.approx(prepare.AUTO_SPACING_RANGE_MM[0])
