@@ -17,7 +17,7 @@ Parts (each can be run alone: ``--cases none --real`` runs only the real CT):
    with the cup as a neighbour label, the femur alone with the cup unlabelled; per bone and per
    pair; cross-sections at the joint.
 3. Real CT (``--real``, Testing/bench_real.py; skipped when /work/shared/data is absent).
-4. Scaling and speed (``--scaling``): femur phantom at 1.0 / 0.7 / 0.5 / 0.35 mm and at the
+4. Scaling and speed (``--scaling``): femur phantom at 1.0 / 0.75 / 0.6 / 0.5 mm and at the
    default spacing, the growth exponent in surface voxels, a pair of bones vs one, and the whole
    CLI run beside 3D Slicer's default closed surface (threshold + flying edges + windowed sinc
    on the CT's grid) on the same case.
@@ -94,7 +94,7 @@ LABEL_KINDS = [("rough", "rough", {}), ("ai", "ai", {"grid_mm": 1.5}),
 LABEL_TEXT = {"rough": "rough (the femur's rough mask + a rough cup)",
               "ai": "AI-like (majority of the truth on a 1.5 mm grid)",
               "ai_steal3": "AI-like 1.5 mm, femur voxels within 3 mm of the cup given to the cup"}
-SCALING_SPACINGS = [1.0, 0.7, 0.5, 0.35]
+SCALING_SPACINGS = [1.0, 0.75, 0.6, 0.5]
 SIDE_BY_SIDE = [("femur", {}), ("femur_0.7x1.5", {"pixel": 0.7, "slice_spacing": 1.5})]
 PAPER_HT = 150.0
 
