@@ -47,6 +47,41 @@ def test_cap_of_a_cut_sphere_is_flat_closed_and_has_the_disc_area():
     assert enclosed_volume(v2, f2) == pytest.approx(expect, rel=0.02)
 
 
+def test_outline_crossing_itself_is_detected():
+    from BoneWatertightLib.mesh import cap
+
+    square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    assert not cap._loops_cross(square, [[0, 1, 2, 3]])
+    bow_tie = np.array([[0, 0], [1, 1], [1, 0], [0, 1]], float)
+    assert cap._loops_cross(bow_tie, [[0, 1, 2, 3]])
+    two = np.vstack([square, square * 0.5 + 0.25])
+    assert not cap._loops_cross(two, [[0, 1, 2, 3], [7, 6, 5, 4]])
+    assert cap._loops_cross(np.vstack([square, square + 0.5]), [[0, 1, 2, 3], [4, 5, 6, 7]])
+
+
+def test_a_crossing_outline_is_cut_again_with_a_smaller_snap(monkeypatch):
+    """Moving vertices off the plane can make two close sheets' cuts cross (a rib cage cut by
+    a 20-slice CT); the cap is then made with the next snap distance."""
+    from BoneWatertightLib.mesh import cap
+
+    calls = []
+    real = cap._loops_cross
+
+    def first_crosses(p, loops):
+        calls.append(1)
+        return True if len(calls) == 1 else real(p, loops)
+
+    monkeypatch.setattr(cap, "_loops_cross", first_crosses)
+    v, f = icosphere(level=4, radius=10.0)
+    v2, f2, flags, area = _capped(v, f, [(2, +1, 4.0)], _edge(v, f))
+    assert len(calls) == 2
+    assert check_surface(v2, f2).ok
+    assert area == pytest.approx(np.pi * (100 - 16), rel=0.02)
+    monkeypatch.setattr(cap, "_loops_cross", lambda p, loops: True)
+    with pytest.raises(cap.CapError, match="crosses itself"):
+        _capped(v, f, [(2, +1, 4.0)], _edge(v, f))
+
+
 def test_two_planes_cut_a_corner():
     v, f = icosphere(level=4, radius=10.0)
     v2, f2, flags, area = _capped(v, f, [(2, +1, 5.0), (0, -1, -3.0)], _edge(v, f))

@@ -19,8 +19,11 @@ from scipy.spatial import Delaunay, cKDTree
 from ..errors import ReconstructionError
 
 # Vertices closer than this (x the mean edge length) to the plane are moved off it first, so
-# no clipped triangle is a sliver.
-SNAP_FRACTION = 0.2
+# no clipped triangle is a sliver. Where two sheets of the surface lie closer than that to each
+# other, the move can make the cut outline cross itself: then the next, smaller fraction is
+# tried (found on a rib cage cut by a 20-slice CT).
+SNAP_FRACTIONS = (0.2, 0.1, 0.05, 0.02)
+SNAP_FRACTION = SNAP_FRACTIONS[0]
 # Interior cap points keep this distance (x the edge length, and x each loop edge's length)
 # from the loop: outside every loop edge's diametral circle, so Delaunay keeps the loop edges.
 INTERIOR_MARGIN = 0.6
@@ -181,6 +184,25 @@ def triangulate_region(points2d: np.ndarray, loops: list, spacing: float):
     return cand, tri
 
 
+def _loops_cross(points2d: np.ndarray, loops: list) -> bool:
+    """Whether two edges of the loops (not sharing a vertex) properly cross."""
+    segs = np.array([(a, b) for lp in loops for a, b in zip(lp, lp[1:] + lp[:1])], dtype=np.int64)
+    a, b = points2d[segs[:, 0]], points2d[segs[:, 1]]
+    half = 0.5 * np.linalg.norm(b - a, axis=1)
+    tree = cKDTree(0.5 * (a + b))
+    for i, j in tree.query_pairs(r=2.0 * float(half.max()) + 1e-12, output_type="ndarray"):
+        if np.intersect1d(segs[i], segs[j]).size:
+            continue
+        p, q, r, s_ = a[i], b[i], a[j], b[j]
+
+        def orient(u, v, w):
+            return (v[0] - u[0]) * (w[1] - u[1]) - (v[1] - u[1]) * (w[0] - u[0])
+
+        if orient(p, q, r) * orient(p, q, s_) < 0 and orient(r, s_, p) * orient(r, s_, q) < 0:
+            return True
+    return False
+
+
 def _triangulate_contours(points2d: np.ndarray, loops: list):
     """Fallback: VTK's contour triangulator (no interior points; holes by orientation)."""
     import vtk
@@ -235,20 +257,30 @@ def cap_plane(vertices: np.ndarray, faces: np.ndarray, flags: np.ndarray, axis: 
     vertices, faces, flags, area
         The capped surface and the cap's area (0 when the surface does not cross the plane).
     """
-    v, f, fl, loop_edges = clip_by_plane(vertices, faces, flags, axis, side, position,
-                                         SNAP_FRACTION * edge_length)
-    if len(loop_edges) == 0:
-        return v, f, fl, 0.0
-    loops = _loops(loop_edges)
     uv = [a for a in range(3) if a != axis]
-    ids = np.unique(np.concatenate(loops))
-    local = {int(g): i for i, g in enumerate(ids)}
-    p2 = v[ids][:, uv]
-    lloops = [[local[int(g)] for g in lp] for lp in loops]
-    try:
-        extra, tri = triangulate_region(p2, lloops, edge_length)
-    except CapError:
-        extra, tri = _triangulate_contours(p2, lloops)
+    error = None
+    for fraction in SNAP_FRACTIONS:
+        v, f, fl, loop_edges = clip_by_plane(vertices, faces, flags, axis, side, position,
+                                             fraction * edge_length)
+        if len(loop_edges) == 0:
+            return v, f, fl, 0.0
+        try:
+            loops = _loops(loop_edges)
+            ids = np.unique(np.concatenate(loops))
+            local = {int(g): i for i, g in enumerate(ids)}
+            p2 = v[ids][:, uv]
+            lloops = [[local[int(g)] for g in lp] for lp in loops]
+            if _loops_cross(p2, lloops):
+                raise CapError("The outline where the bone leaves the image crosses itself.")
+            try:
+                extra, tri = triangulate_region(p2, lloops, edge_length)
+            except CapError:
+                extra, tri = _triangulate_contours(p2, lloops)
+            break
+        except CapError as exc:
+            error = exc
+    else:
+        raise error
     new_ids = np.concatenate([ids, len(v) + np.arange(len(extra))])
     extra3 = np.zeros((len(extra), 3))
     extra3[:, uv] = extra
