@@ -1,3 +1,4 @@
+import importlib.util
 import logging
 import os
 import pathlib
@@ -206,6 +207,11 @@ def innerSpinBoxes(sliderWidget) -> list:
 
 class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     PREVIEW_HIDE_DELAY_MS = 1500
+    # Apply runs the reconstruction in a PythonSlicer child process polled by a timer (the
+    # panel keeps painting, Cancel stops it within a second); False: in this process with
+    # cooperative progress (the logic's process()/processMany(), as from the Python console).
+    runInChildProcess = True
+    CHILD_POLL_INTERVAL_MS = 100
 
     def __init__(self, parent=None) -> None:
         ScriptedLoadableModuleWidget.__init__(self, parent)
@@ -221,6 +227,10 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._updatingSegmentSelector = False
         self._segmentationShown = None  # the segmentation whose segments the selector last showed
         self._connectingGui = False  # connectGui writes the sliders: no preview for that
+        self._childRun = None  # BoneWatertightLib.mrml.ChildNodesRun of a run in a child process
+        self._childRunDone = None  # (showResult, showFailure) of that run
+        self._childRunTimer = None
+        self._childRunMessage = ""
 
     def setup(self) -> None:
         ScriptedLoadableModuleWidget.setup(self)
@@ -252,6 +262,9 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             show=self.updatePreview, hide=self._hidePreview,
             armHideTimer=self._previewTimer.start, disarmHideTimer=self._previewTimer.stop)
         self._previewTimer.connect("timeout()", self._previewController.hideNow)
+        self._childRunTimer = qt.QTimer()
+        self._childRunTimer.setInterval(self.CHILD_POLL_INTERVAL_MS)
+        self._childRunTimer.connect("timeout()", self.onChildRunTimer)
         # ctkSliderWidget tracks by default: valueChanged comes at every drag step (and
         # valueIsChanging never), so the preview follows the mouse; each step only
         # thresholds the cached crop around the segment (mrml.ThresholdPreview).
@@ -298,6 +311,10 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def cleanup(self) -> None:
         self._applyGuard.requestCancel()
+        if self._childRun is not None:  # stop the child process and remove its files
+            self._childRunTimer.stop()
+            self._childRun.close()
+            self._childRun = None
         self.removePreview()
         self.removeObservers()
 
@@ -313,7 +330,8 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def onSceneStartClose(self, caller, event) -> None:
         # A run in progress is cancelled by the logic's own scene guard (mrml.RunGuard: it
-        # raises CancelledError before anything is written); stop asking for more work too.
+        # raises CancelledError before anything is written; a child process is stopped at
+        # once); stop asking for more work too.
         if self._applyGuard.requestCancel():
             self.ui.statusLabel.text = _("The scene is closing: cancelling the run...")
         self.removePreview()
@@ -523,12 +541,10 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         While pip runs (it pumps events for every line it prints) the guard is "installing":
         Apply is disabled, a second click is ignored, and the application shows a busy cursor.
         """
-        try:
-            import open3d  # noqa: F401
-
+        # found without importing it here: the import takes seconds (the reconstruction
+        # imports it, in a child process or in a helper thread)
+        if importlib.util.find_spec("open3d") is not None:
             return True
-        except ImportError:
-            pass
         if not slicer.util.confirmOkCancelDisplay(
                 _("Bone Watertight needs the Python package open3d (about 400 MB download) for its "
                   "Poisson step. Install it into Slicer's Python now?"),
@@ -588,6 +604,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onApplyButton(self) -> None:
         action = self._applyGuard.click()
         if action == "cancel":
+            # the in-process run stops at its next progress step, a child run at the next poll
             self.ui.statusLabel.text = _("Cancelling...")
             self._checkCanApply()
             return
@@ -610,14 +627,11 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         # one model each, replacing those an earlier run made from the same segments
         outputs = (mrml.previous_output_models(slicer.mrmlScene, p.inputSegmentation, ids) if several
                    else [p.outputModel])
-        try:
-            with self._applyGuard.running():
-                self._showRunning(True)
-                out = self.logic.processManyWithResult(
-                    p.inputVolume, p.inputSegmentation, ids, outputs, progressCallback=self._progress,
-                    neighbours="auto" if p.neighbours else "none", addAsSegments=p.addAsSegment,
-                    showIntermediates=p.showIntermediates, colorByDistance=p.colorByDistance,
-                    **parametersFromNode(p))
+        options = dict(neighbours="auto" if p.neighbours else "none", addAsSegments=p.addAsSegment,
+                       showIntermediates=p.showIntermediates, colorByDistance=p.colorByDistance,
+                       **parametersFromNode(p))
+
+        def showResult(out) -> None:
             if not several:
                 p.outputModel = out.modelNodes[0]
             lines = out.summaryLines()
@@ -632,14 +646,78 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 self.ui.statusLabel.text = _("Done in {seconds:.1f} s.").format(seconds=seconds)
             for line in lines:
                 self._log(line)
-        except CancelledError as exc:  # Cancel, or the scene closed / an input was removed
+
+        def showFailure(exc) -> None:  # called inside an except block
             self.ui.statusLabel.text = str(exc)
-            self._log(f"Cancelled: {exc}")
-        except Exception as exc:
-            self.ui.statusLabel.text = str(exc)
+            if isinstance(exc, CancelledError):  # Cancel, or the scene closed / an input was removed
+                self._log(f"Cancelled: {exc}")
+                return
             self._log(f"Failed: {exc}")
             logging.exception("BoneWatertight failed")
             slicer.util.errorDisplay(_("Bone Watertight failed: {error}").format(error=exc))
+
+        if self.runInChildProcess:
+            self._startChildRun(p, ids, outputs, options, showResult, showFailure)
+            return
+        try:
+            with self._applyGuard.running():
+                self._showRunning(True)
+                out = self.logic.processManyWithResult(
+                    p.inputVolume, p.inputSegmentation, ids, outputs, progressCallback=self._progress,
+                    **options)
+            showResult(out)
+        except Exception as exc:
+            showFailure(exc)
+        finally:
+            self._showRunning(False)
+
+    def _startChildRun(self, p, ids, outputs, options, showResult, showFailure) -> None:
+        """Export the inputs (cooperative progress), start the child process and poll it from
+        the timer; the GUI thread stays free while it runs."""
+        self._applyGuard.beginRun()
+        self._showRunning(True)
+        try:
+            run = self.logic.startProcessMany(p.inputVolume, p.inputSegmentation, ids, outputs,
+                                              progressCallback=self._progress, **options)
+        except Exception as exc:
+            self._applyGuard.endRun()
+            self._showRunning(False)
+            showFailure(exc)
+            return
+        self._childRun = run
+        self._childRunDone = (showResult, showFailure)
+        self._childRunMessage = ""
+        self._childRunTimer.start()
+
+    def onChildRunTimer(self) -> None:
+        """Every CHILD_POLL_INTERVAL_MS while a child run lasts: progress, Cancel, and at the
+        end the result (the same display as an in-process run)."""
+        run = self._childRun
+        if run is None:
+            self._childRunTimer.stop()
+            return
+        if self._applyGuard.cancelRequested:
+            run.cancel()  # returns within a second; the child is gone afterwards
+        fraction, message, finished = run.poll()  # never blocks
+        self.ui.progressBar.value = int(round(100 * fraction))
+        if message and message != self._childRunMessage and not self._applyGuard.cancelRequested:
+            self._childRunMessage = message
+            self.ui.statusLabel.text = message
+            logging.info(f"BoneWatertight {100 * fraction:5.1f}% {message}")
+        if not finished:
+            return
+        self._childRunTimer.stop()
+        self._childRun = None
+        showResult, showFailure = self._childRunDone
+        self._childRunDone = None
+        try:
+            try:
+                out = self.logic.finishProcessMany(run)
+            finally:
+                self._applyGuard.endRun()
+            showResult(out)
+        except Exception as exc:
+            showFailure(exc)
         finally:
             self._showRunning(False)
 
@@ -780,6 +858,44 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
             showIntermediates=showIntermediates, colorByDistance=colorByDistance)
         logging.info(f"BoneWatertight: processing completed in {time.time() - startTime:.2f} s:\n"
                      + "\n".join(out.summaryLines()))
+        return out
+
+    def startProcessMany(self, volumeNode: vtkMRMLScalarVolumeNode, segmentationNode: vtkMRMLSegmentationNode,
+                         segmentIds: Sequence[str], outputModelNodes=None, progressCallback=None,
+                         neighbours: Union[str, Sequence[str]] = "auto", addAsSegments: bool = False,
+                         showIntermediates: bool = False, colorByDistance: bool = True,
+                         preset: Optional[str] = None, pythonExecutable: Optional[str] = None, **parameters):
+        """As processManyWithResult(), with the reconstruction in a child process (PythonSlicer
+        running the bonewatertight command line): exports the inputs, starts the process and
+        returns at once with a BoneWatertightLib.mrml.ChildNodesRun. Poll it from a timer
+        (``fraction, message, finished = run.poll()``, never blocks), stop it with
+        ``run.cancel()`` (within a second), then call finishProcessMany(run). Closing the scene
+        or removing an input node stops it. progressCallback is called during the export.
+
+        :param pythonExecutable: the interpreter (default: PythonSlicer beside the application).
+        :raises: as processMany() for bad inputs (the scene is unchanged).
+        """
+        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app.child import find_python_slicer
+
+        params = self._parameters(preset, parameters)
+        logging.info(f"BoneWatertight: processing {len(segmentIds)} bone(s) in a child process")
+        return mrml.start_many_on_nodes(
+            volumeNode, segmentationNode, list(segmentIds), outputModelNodes, params,
+            progress=progressCallback, neighbours=neighbours, addAsSegments=addAsSegments,
+            showIntermediates=showIntermediates, colorByDistance=colorByDistance,
+            python=pythonExecutable or find_python_slicer(slicer.app.applicationDirPath()),
+            tempRoot=slicer.app.temporaryPath)
+
+    def finishProcessMany(self, run, timeout: Optional[float] = None):
+        """Second half of startProcessMany(): store the surfaces as processManyWithResult()
+        does and return its BoneWatertightLib.mrml.JointNodesResult (waits for the process
+        when it has not finished; timeout in s). Raises the run's typed error (InputError,
+        ReconstructionError, CancelledError, ...); the scene is then unchanged."""
+        from BoneWatertightLib import mrml
+
+        out = mrml.finish_many_on_nodes(run, timeout)
+        logging.info("BoneWatertight: processing completed in a child process:\n" + "\n".join(out.summaryLines()))
         return out
 
 

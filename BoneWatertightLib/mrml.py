@@ -26,6 +26,14 @@ when its scene closes (:func:`run_on_nodes`, :class:`RunGuard`, :class:`RunProgr
 :func:`load_pipeline`), and the panel's live threshold preview on a cached crop
 (:class:`ThresholdPreview`). The only thread used imports modules (open3d); MRML is touched
 on the caller's thread alone.
+
+The same joint run with the reconstruction in a child process, for a panel whose GUI thread
+must stay free (issue 13): :func:`start_many_on_nodes` checks and exports on the caller's
+thread and starts the child (:class:`BoneWatertightLib.app.child.ChildRun`, the project's
+command line); the returned :class:`ChildNodesRun` is polled from a timer (never blocks) and
+cancelled within a second, and the scene guard cancels it when the scene closes;
+:func:`finish_many_on_nodes` stores the result with the same code as :func:`run_many_on_nodes`
+(:func:`_store_many`).
 """
 
 from __future__ import annotations
@@ -953,10 +961,12 @@ class RunGuard:
     scene. Use as a context manager (observers are removed on exit).
     """
 
-    def __init__(self, scene, nodes=()):
+    def __init__(self, scene, nodes=(), onCancel=None):
         self.scene = scene
         self.nodes = [n for n in nodes if n is not None]
         self.reason: Optional[str] = None
+        # called once when the run is to be cancelled (a child process is stopped at once)
+        self.onCancel = onCancel
         self._tags = []
         if scene is not None:
             self._tags = [scene.AddObserver(slicer.vtkMRMLScene.StartCloseEvent, self._onClose),
@@ -965,6 +975,7 @@ class RunGuard:
     def _onClose(self, caller=None, event=None):
         if self.reason is None:
             self.reason = "The scene was closed during the run"
+            self._notify()
 
     def _onNodeRemoved(self, caller=None, event=None):
         if self.reason is not None:
@@ -972,7 +983,12 @@ class RunGuard:
         for node in self.nodes:
             if not self.scene.IsNodePresent(node):
                 self.reason = f"'{node.GetName()}' was removed from the scene during the run"
+                self._notify()
                 return
+
+    def _notify(self):
+        if self.onCancel is not None:
+            self.onCancel()
 
     def check(self) -> None:
         """CancelledError if the scene closed or a node of the run was removed."""
@@ -1230,31 +1246,32 @@ def _neighbour_ids(segmentationNode, segmentIds, neighbours) -> list:
     return list(dict.fromkeys(chosen))
 
 
-def run_many_on_nodes(volumeNode, segmentationNode, segmentIds, outputModelNodes=None, params=None,
-                      progress=None, scene=None, *, neighbours="auto", addAsSegments: bool = False,
-                      showIntermediates: bool = False, colorByDistance: bool = False,
-                      modelNames=None) -> JointNodesResult:
-    """Reconstruct several bones of one segmentation together from MRML nodes (SPEC §5b).
+@dataclass
+class _ManyRun:
+    """What a joint run on nodes was asked for, checked before any work (shared by
+    :func:`run_many_on_nodes` and :func:`start_many_on_nodes`)."""
 
-    :param segmentIds: the segments to reconstruct (one model each, in this order).
-    :param outputModelNodes: models to replace on success: None (new ones named
-        "<segment> watertight"), a list aligned with ``segmentIds`` (None entries: new), or a
-        dict segment ID -> model node.
-    :param neighbours: "auto" (default: every other segment of the segmentation competes for
-        the joints, and no surface enters it; segments written back by an earlier run are
-        copies of their sources and left out), "none", or a list of segment IDs.
-    :param addAsSegments: also write the surfaces into the segmentation as new segments
-        "<segment> watertight", sharing one label map layer (no voxel in two of them).
-    :param showIntermediates, colorByDistance: as :func:`run_on_nodes`.
-    :param modelNames: names of new models (list aligned with segmentIds or dict).
-    :return: :class:`JointNodesResult`.
-    :raises InputError: bad inputs, overlapping segments (named). ReconstructionError and its
-        subclasses (PlausibilityError, SurfaceCheckError) when a bone fails; CancelledError.
+    scene: object
+    volumeNode: object
+    segmentationNode: object
+    segmentIds: list
+    parameters: Parameters
+    outputs: list
+    names: list
+    neighbourIds: list
+    addAsSegments: bool
+    showIntermediates: bool
+    colorByDistance: bool
 
-    The scene is only modified after every bone succeeded; a failed or cancelled run leaves it
-    as it was (also should writing the results fail half-way: what was written is undone).
-    Progress, Cancel and the scene-close guard as in :func:`run_on_nodes`.
-    """
+    @property
+    def guardedNodes(self) -> tuple:
+        """The nodes whose removal cancels the run: the inputs and the given output models."""
+        return (self.volumeNode, self.segmentationNode, *[n for n in self.outputs if n is not None])
+
+
+def _plan_many(volumeNode, segmentationNode, segmentIds, outputModelNodes, params, scene,
+               neighbours, addAsSegments, showIntermediates, colorByDistance, modelNames) -> _ManyRun:
+    """Every check of a joint run on nodes that needs no voxel (InputError before any work)."""
     parameters = _as_parameters(params)
     if showIntermediates and not parameters.keep_intermediates:
         parameters = parameters.replace(keep_intermediates=True)
@@ -1284,30 +1301,203 @@ def run_many_on_nodes(volumeNode, segmentationNode, segmentIds, outputModelNodes
     neighbourIds = _neighbour_ids(segmentationNode, segmentIds, neighbours)
     if addAsSegments:
         _check_write_back(segmentationNode)
+    return _ManyRun(scene=scene, volumeNode=volumeNode, segmentationNode=segmentationNode,
+                    segmentIds=segmentIds, parameters=parameters, outputs=outputs, names=names,
+                    neighbourIds=neighbourIds, addAsSegments=bool(addAsSegments),
+                    showIntermediates=bool(showIntermediates), colorByDistance=bool(colorByDistance))
 
-    with RunGuard(scene, (volumeNode, segmentationNode, *given)) as guard:
+
+def _competing(plan: _ManyRun, labels: SegmentLabels) -> list:
+    """The neighbour segments that made it into the label image (the others are empty, outside
+    the CT or out of reach)."""
+    return [s for s in plan.neighbourIds if s in labels.values]
+
+
+def _pipeline_targets(plan: _ManyRun, labels: SegmentLabels) -> tuple:
+    """(target label values, neighbours argument) of the pipeline call for this plan."""
+    return ([labels.values[s] for s in plan.segmentIds],
+            "auto" if _competing(plan, labels) else "none")
+
+
+def _store_many(plan: _ManyRun, guard: RunGuard, joint, labels: SegmentLabels) -> JointNodesResult:
+    """The success half of a joint run on nodes: ``joint`` (the pipeline's JointResult, or a
+    child run's ChildJoint with the same attributes) into models, report attributes and, on
+    request, segments and intermediate-result nodes."""
+    guard.check()  # the scene may have closed after the last progress report
+    segmentationNode = plan.segmentationNode
+    segmentation = segmentationNode.GetSegmentation()
+    segNames = [segmentation.GetSegment(s).GetName() or s for s in plan.segmentIds]
+    surfaces = [_with_distances(b) for b in joint.bones]
+    prepared = None
+    if plan.addAsSegments:
+        prepared = prepare_segments_without_overlap(
+            segmentationNode, plan.volumeNode, [(f"{n} watertight", s) for n, s in zip(segNames, surfaces)])
+        guard.check()
+    out = JointNodesResult(modelNodes=[], segmentIds=list(plan.segmentIds), result=joint,
+                           neighbourSegmentIds=_competing(plan, labels),
+                           skippedSegments=dict(labels.skipped))
+    _store_joint(plan.scene, out, segmentationNode, surfaces, plan.outputs, plan.names, segNames, prepared,
+                 showIntermediates=plan.showIntermediates, colorByDistance=plan.colorByDistance)
+    return out
+
+
+def run_many_on_nodes(volumeNode, segmentationNode, segmentIds, outputModelNodes=None, params=None,
+                      progress=None, scene=None, *, neighbours="auto", addAsSegments: bool = False,
+                      showIntermediates: bool = False, colorByDistance: bool = False,
+                      modelNames=None) -> JointNodesResult:
+    """Reconstruct several bones of one segmentation together from MRML nodes (SPEC §5b).
+
+    :param segmentIds: the segments to reconstruct (one model each, in this order).
+    :param outputModelNodes: models to replace on success: None (new ones named
+        "<segment> watertight"), a list aligned with ``segmentIds`` (None entries: new), or a
+        dict segment ID -> model node.
+    :param neighbours: "auto" (default: every other segment of the segmentation competes for
+        the joints, and no surface enters it; segments written back by an earlier run are
+        copies of their sources and left out), "none", or a list of segment IDs.
+    :param addAsSegments: also write the surfaces into the segmentation as new segments
+        "<segment> watertight", sharing one label map layer (no voxel in two of them).
+    :param showIntermediates, colorByDistance: as :func:`run_on_nodes`.
+    :param modelNames: names of new models (list aligned with segmentIds or dict).
+    :return: :class:`JointNodesResult`.
+    :raises InputError: bad inputs, overlapping segments (named). ReconstructionError and its
+        subclasses (PlausibilityError, SurfaceCheckError) when a bone fails; CancelledError.
+
+    The scene is only modified after every bone succeeded; a failed or cancelled run leaves it
+    as it was (also should writing the results fail half-way: what was written is undone).
+    Progress, Cancel and the scene-close guard as in :func:`run_on_nodes`. The same run in a
+    child process (the GUI thread stays free): :func:`start_many_on_nodes` /
+    :func:`finish_many_on_nodes`.
+    """
+    plan = _plan_many(volumeNode, segmentationNode, segmentIds, outputModelNodes, params, scene,
+                      neighbours, addAsSegments, showIntermediates, colorByDistance, modelNames)
+    with RunGuard(plan.scene, plan.guardedNodes) as guard:
         report = RunProgress(progress, guard)
-        ct, labels = export_joint_inputs(volumeNode, segmentationNode, segmentIds, neighbourIds,
-                                         parameters, report)
+        ct, labels = export_joint_inputs(volumeNode, segmentationNode, plan.segmentIds, plan.neighbourIds,
+                                         plan.parameters, report)
         pipeline = load_pipeline(report)
-        competing = [s for s in neighbourIds if s in labels.values]
-        joint = pipeline.reconstruct_many(
-            ct, labels.image, [labels.values[s] for s in segmentIds], parameters, report.pipeline(),
-            neighbours="auto" if competing else "none", names=labels.names)
-        guard.check()  # the scene may have closed after the last progress report
-        segmentation = segmentationNode.GetSegmentation()
-        segNames = [segmentation.GetSegment(s).GetName() or s for s in segmentIds]
-        surfaces = [_with_distances(b) for b in joint.bones]
-        prepared = None
-        if addAsSegments:
-            prepared = prepare_segments_without_overlap(
-                segmentationNode, volumeNode, [(f"{n} watertight", s) for n, s in zip(segNames, surfaces)])
-            guard.check()
-        out = JointNodesResult(modelNodes=[], segmentIds=segmentIds, result=joint,
-                               neighbourSegmentIds=competing, skippedSegments=dict(labels.skipped))
-        _store_joint(scene, out, segmentationNode, surfaces, outputs, names, segNames, prepared,
-                     showIntermediates=showIntermediates, colorByDistance=colorByDistance)
-        return out
+        targets, competing = _pipeline_targets(plan, labels)
+        joint = pipeline.reconstruct_many(ct, labels.image, targets, plan.parameters, report.pipeline(),
+                                          neighbours=competing, names=labels.names)
+        return _store_many(plan, guard, joint, labels)
+
+
+# ---------------------------------------------------------------------------------------
+# the same run in a child process (issue 13)
+# ---------------------------------------------------------------------------------------
+
+CHILD_STARTING_MESSAGE = "Starting the reconstruction process"
+
+
+class ChildNodesRun:
+    """A joint run on nodes whose reconstruction goes on in a child process
+    (:class:`BoneWatertightLib.app.child.ChildRun`), made by :func:`start_many_on_nodes`.
+
+    :meth:`poll` (from a GUI timer) never blocks: it returns ``(fraction, message, finished)``
+    on the run's one [0, 1] scale (export, then the child's progress from PIPELINE_START on).
+    :meth:`cancel` stops the child within a second. The scene guard (:class:`RunGuard`) stays
+    on while the child runs: closing the scene, or removing an input or a given output model,
+    cancels the child at once, and :func:`finish_many_on_nodes` then raises CancelledError.
+    ``childRun`` is the ChildRun (its ``progress_log``, ``output``, ``command``).
+    """
+
+    def __init__(self, plan: _ManyRun, guard: RunGuard, labels: SegmentLabels, childRun):
+        self.plan = plan
+        self.guard = guard
+        self.labels = labels
+        self.childRun = childRun
+        self.closed = False
+        guard.onCancel = self.cancel
+
+    def poll(self):
+        from .app.child import PollResult
+
+        if self.guard.reason is not None and not self.childRun.cancelled:
+            self.childRun.cancel()
+        state = self.childRun.poll()
+        if self.childRun.proc is None or not self.childRun.progress_log:
+            fraction = IMPORT_START
+            message = state.message or CHILD_STARTING_MESSAGE
+        else:
+            fraction = PIPELINE_START + (1.0 - PIPELINE_START) * state.fraction
+            message = state.message
+        return PollResult(fraction, message, state.finished)
+
+    @property
+    def finished(self) -> bool:
+        return self.childRun.finished
+
+    def cancel(self) -> None:
+        """Stop the child (returns within about a second); the run then ends cancelled."""
+        self.childRun.cancel()
+
+    def close(self) -> None:
+        """Stop the child if it still runs, remove its files, stop observing the scene."""
+        if not self.closed:
+            self.closed = True
+            try:
+                self.childRun.close()
+            finally:
+                self.guard.onCancel = None
+                self.guard.close()
+
+
+def start_many_on_nodes(volumeNode, segmentationNode, segmentIds, outputModelNodes=None, params=None,
+                        progress=None, scene=None, *, neighbours="auto", addAsSegments: bool = False,
+                        showIntermediates: bool = False, colorByDistance: bool = False,
+                        modelNames=None, python: Optional[str] = None, env: Optional[dict] = None,
+                        tempRoot: Optional[str] = None) -> ChildNodesRun:
+    """First half of :func:`run_many_on_nodes` with the reconstruction in a child process.
+
+    Checks the inputs, exports the CT and the segments (on this thread: MRML is read here
+    only; ``progress`` is called as in run_many_on_nodes during the export), starts the
+    child (``python``: the interpreter, default
+    :func:`BoneWatertightLib.app.child.find_python_slicer`; ``env``: its environment;
+    ``tempRoot``: where its private folder goes) and returns at once with a
+    :class:`ChildNodesRun`. Poll it from a timer; then :func:`finish_many_on_nodes`. The
+    arguments and errors before the run are those of run_many_on_nodes; the scene is not
+    touched.
+    """
+    from .app.child import ChildRun
+
+    plan = _plan_many(volumeNode, segmentationNode, segmentIds, outputModelNodes, params, scene,
+                      neighbours, addAsSegments, showIntermediates, colorByDistance, modelNames)
+    guard = RunGuard(plan.scene, plan.guardedNodes)
+    try:
+        report = RunProgress(progress, guard)
+        ct, labels = export_joint_inputs(volumeNode, segmentationNode, plan.segmentIds, plan.neighbourIds,
+                                         plan.parameters, report)
+        report(IMPORT_START, CHILD_STARTING_MESSAGE)
+        targets, competing = _pipeline_targets(plan, labels)
+        # the export made sure every target and neighbour in the label image has voxels
+        child = ChildRun(ct, labels.image, targets, labels.names, plan.parameters, neighbours=competing,
+                         python=python, env=env, temp_root=tempRoot, check_labels=False)
+        child.start()
+    except BaseException:
+        guard.close()
+        raise
+    return ChildNodesRun(plan, guard, labels, child)
+
+
+def finish_many_on_nodes(run: ChildNodesRun, timeout: Optional[float] = None) -> JointNodesResult:
+    """Second half: wait for the child (at once when :meth:`ChildNodesRun.poll` said finished;
+    ``timeout`` in s, else ChildRunError), then write the surfaces into the model nodes (and
+    segments, intermediate nodes) exactly as :func:`run_many_on_nodes` does, and return its
+    :class:`JointNodesResult` (``result`` is the child's ChildJoint: ``bones[i].report``,
+    ``pairs``, ``report``, typed). The child's error is raised as the library's typed error
+    (InputError, ReconstructionError, ...), CancelledError after a cancel, a closed scene or a
+    removed node; the scene is then unchanged. The child's files and the scene observers are
+    gone afterwards in every case."""
+    try:
+        run.guard.check()
+        joint = run.childRun.result(timeout)
+        return _store_many(run.plan, run.guard, joint, run.labels)
+    except BaseException:
+        if run.guard.reason is not None:
+            run.childRun.cancel()
+            run.guard.check()  # CancelledError naming why (the scene closed, a node was removed)
+        raise
+    finally:
+        run.close()
 
 
 def _with_distances(bone) -> Surface:

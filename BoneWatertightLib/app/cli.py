@@ -8,11 +8,20 @@ change), 3 reconstruction failed (batch: some case failed), 4 missing dependency
 could not be written (or another OS error), 130 cancelled (Ctrl-C, SIGTERM or SIGHUP), 1
 internal error. Errors are one line ``error: <message>`` on stderr. The files of a run (surfaces,
 report, picture, intermediates) appear together, complete, or not at all.
+
+For a program that runs the command (3D Slicer's panel through
+:class:`BoneWatertightLib.app.child.ChildRun`), ``--progress-lines`` prints machine-readable
+lines on stdout, each flushed at once: ``PROGRESS <fraction> <message>`` for every progress
+step (fraction 0 to 1, six decimals, non-decreasing; the message on one line) and, for every
+error, ``ERROR <json>`` with ``type`` (the exception's class name), ``message`` (its full text),
+``segment`` (the bone it concerns, or null) and ``code`` (the exit code), beside the usual
+``error:`` line on stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -49,6 +58,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="Print nothing but errors.")
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="Print each stage; tracebacks on internal errors.")
+    parser.add_argument("--progress-lines", action="store_true",
+                        help="For a program running this command: print 'PROGRESS <fraction> "
+                             "<message>' on stdout at every progress step and 'ERROR <json>' "
+                             "(type, message, segment, code) for every error, each line "
+                             "flushed at once.")
     batch = parser.add_argument_group("batch (many cases)")
     batch.add_argument("--cases", metavar="CSV|DIR",
                        help="Run many cases: a CSV (columns ct,seg,label,out[,preset]) or a "
@@ -145,6 +159,54 @@ class ProgressBar:
             self._clear()
 
 
+PROGRESS_PREFIX = "PROGRESS "
+ERROR_PREFIX = "ERROR "
+
+
+class ProgressLines:
+    """``--progress-lines``: one ``PROGRESS <fraction> <message>`` line per progress callback
+    on ``stream`` (stdout), flushed at once, then the wrapped callback (the terminal bar),
+    whose answer is returned (False still cancels). Fractions never go back: a smaller one is
+    printed as the largest so far."""
+
+    def __init__(self, stream=None, then=None):
+        self.stream = stream or sys.stdout
+        self.then = then
+        self.highest = 0.0
+
+    def __call__(self, fraction: float, message: str = ""):
+        self.highest = max(self.highest, min(max(float(fraction), 0.0), 1.0))
+        text = " ".join(str(message or "").split())
+        self.stream.write(f"{PROGRESS_PREFIX}{self.highest:.6f} {text}\n")
+        self.stream.flush()
+        if self.then is not None:
+            return self.then(fraction, message)
+        return None
+
+    def close(self):
+        if self.then is not None and hasattr(self.then, "close"):
+            self.then.close()
+
+
+def error_line(exc: BaseException, code: int, segment: Optional[str] = None) -> str:
+    """The ``ERROR <json>`` line of ``--progress-lines`` for an exception."""
+    name = "CancelledError" if isinstance(exc, KeyboardInterrupt) else type(exc).__name__
+    message = str(exc) if not isinstance(exc, KeyboardInterrupt) else (
+        f"Cancelled ({exc.name}); nothing was written." if isinstance(exc, CancelledBySignal)
+        else "Cancelled by the user; nothing was changed.")
+    return ERROR_PREFIX + json.dumps({"type": name, "message": message, "segment": segment,
+                                      "code": int(code)}, ensure_ascii=True)
+
+
+def _print_error_line(args, exc: BaseException, code: int, segment: Optional[str] = None) -> None:
+    if args is not None and getattr(args, "progress_lines", False):
+        try:
+            sys.stdout.write(error_line(exc, code, segment) + "\n")
+            sys.stdout.flush()
+        except (OSError, ValueError):  # the reader went away: the error line on stderr stays
+            pass
+
+
 # ----------------------------------------------------------------------------------------
 # main
 
@@ -165,6 +227,8 @@ def _main(argv=None) -> int:
         args = parser.parse_args(argv)
         if args.quiet and args.verbose:
             parser.error("--quiet and --verbose exclude each other")
+        if args.cases and args.progress_lines:
+            parser.error("--progress-lines is for one run (--ct/--seg), not for --cases")
         if args.cases:
             from . import batch
 
@@ -175,9 +239,11 @@ def _main(argv=None) -> int:
     except KeyboardInterrupt as exc:
         how = f" ({exc.name})" if isinstance(exc, CancelledBySignal) else " by the user"
         sys.stderr.write(f"\nerror: cancelled{how}; no output file was written.\n")
+        _print_error_line(args, exc, EXIT_CANCELLED)
         return EXIT_CANCELLED
     except Exception as exc:  # one line for the user; the traceback only on request
         code = exit_code_for(exc)
+        _print_error_line(args, exc, code)
         if code == EXIT_INTERNAL and args is not None and args.verbose:
             import traceback
 
@@ -228,9 +294,15 @@ def _run_single(args, parser) -> int:
     check_single_args(args, parser)
     params = parameters_from_args(args)
     system = "RAS" if args.ras else "LPS"
+    bar = ProgressBar(enabled=None if not args.quiet else False, verbose=args.verbose)
+    progress = ProgressLines(sys.stdout, bar) if args.progress_lines else bar
+    if args.progress_lines:
+        progress(0.0, "Reading the CT")
 
     t0 = time.perf_counter()
     ct = images.read_ct(args.ct, args.ct_series)
+    if args.progress_lines:
+        progress(0.0, "Reading the segments")
     labels, names = segmentations.read_label_image(args.seg)
     if args.all_labels:
         present = getattr(names, "present", None)
@@ -257,7 +329,6 @@ def _run_single(args, parser) -> int:
             if len(targets) > 1 and "{label}" not in args.picture:
                 pic = os.path.splitext(pic)[0] + f"_{run.safe_name(label_names[v])}.png"
             pictures[v] = pic
-    bar = ProgressBar(enabled=None if not args.quiet else False, verbose=args.verbose)
     inputs = {"ct": os.path.abspath(args.ct), "seg": os.path.abspath(args.seg),
               "ct_size": list(ct.GetSize()), "ct_spacing": list(ct.GetSpacing()),
               "preset": args.preset}
@@ -267,7 +338,7 @@ def _run_single(args, parser) -> int:
             joint = run.run_joint(ct, labels, targets, dict(names), outputs, params,
                                   coordinate_system=system, pictures=pictures,
                                   intermediates_dir=args.save_intermediates,
-                                  neighbours=neighbours, progress=bar, inputs=inputs,
+                                  neighbours=neighbours, progress=progress, inputs=inputs,
                                   read_seconds=t_read, report_path=args.report,
                                   transaction=tx)
     except CancelledError:
@@ -291,6 +362,7 @@ def _run_single(args, parser) -> int:
         code = exit_code_for(exc)
         if code == EXIT_INTERNAL:
             raise exc
+        _print_error_line(args, exc, code, segment=name)
         codes.append(code)
     if not args.quiet:
         for report in joint.reports:
