@@ -314,12 +314,14 @@ class Parameters:
         True, "refine", "Advanced", label="Sub-voxel edge refinement",
         help="After the deformation, move vertices along the normal to the CT profile's edge "
              "(an addition to the paper; off gives the paper's HT surface)")
-    edge_level: float = param(
-        0.6, "refine", "Advanced", label="Edge level", minimum=0.3, maximum=0.9, step=0.05,
+    edge_level: Optional[float] = param(
+        None, "refine", "Advanced", label="Edge level", minimum=0.3, maximum=0.9, step=0.05,
         decimals=2,
+        auto="per vertex by the blurred-slab model: 0.5 (half maximum) at thick cortex, up to "
+             "0.9 where the cortex is thinner than the blur",
         help="Where the refined edge sits between the outside valley (0) and the bone peak (1) "
-             "of the CT profile (0.5 = half maximum; 0.6 measured best on the phantoms: thin "
-             "cortex blurred by the PSF puts the half maximum outside the true border)")
+             "of the CT profile. Thin cortex blurred by the scanner puts the half maximum "
+             "outside the true border; auto corrects for it from each profile's contrast")
 
     # --- joints, cut bones, plausibility (ours, SPEC 5b)
     min_gap: float = param(

@@ -71,6 +71,11 @@ BAND_COARSENESS = 1.0
 CONTACT_RETRIES = 3
 # HT crossings within this distance (mm) of W_H0 are left out of B* (see _bone_surface).
 HT_BEYOND_H0_MM = 1.0
+# A pair whose bone evidence touches over more than JOINT_WARN_MIN_MM2 with a joint space
+# visible on less than JOINT_WARN_SEEN of it gets a warning: there the boundary between them
+# follows the labels alone (a narrow joint on thick slices), and wrong labels move it.
+JOINT_WARN_SEEN = 0.5
+JOINT_WARN_MIN_MM2 = 25.0
 # Vertices farther than this (mm) from every other bone's voxels are its free surface (where
 # the edge refinement's support is measured).
 FREE_SURFACE_MM = 2.0
@@ -384,6 +389,17 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
                                     joint_contact_mm2=float(joint["contact_area_mm2"]) if joint else 0.0,
                                     joint_valley_seen_fraction=(float(joint["valley_seen_fraction"])
                                                                 if joint else None)))
+    for p in pairs:
+        seen = p.joint_valley_seen_fraction
+        if seen is not None and seen < JOINT_WARN_SEEN and p.joint_contact_mm2 > JOINT_WARN_MIN_MM2:
+            p.warnings.append(
+                f"{p.a} | {p.b}: the CT shows a joint space on only {100 * seen:.0f} % of their "
+                f"{p.joint_contact_mm2:.0f} mm^2 contact; elsewhere the boundary between them "
+                "follows the segments' labels (a narrow joint on thick slices, or no joint space "
+                "at all): check both surfaces at the joint")
+            for r in (by_k[k] for k in good):
+                if r.name in (p.a, p.b):
+                    r.report.warnings.append(p.warnings[-1])
     bad = [p for p in pairs if not p.ok]
     if bad:
         text = "; ".join(f"{p.a} and {p.b}: {p.crossing_face_pairs} crossing face pairs, "
@@ -458,6 +474,21 @@ def size_problems(prep, params: Parameters, names: Optional[dict] = None) -> dic
                 f"{np.ceil(edge * over ** (1 / 3) * 100) / 100:g} mm (or auto), or raise "
                 "max_memory_gb.")
     return problems
+
+
+def _component_volumes(vertices, faces) -> list:
+    """Enclosed volume (mm^3) of each connected piece of a surface, largest first."""
+    import scipy.sparse as sps
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(vertices)
+    rows = np.concatenate([faces[:, 0], faces[:, 1]])
+    cols = np.concatenate([faces[:, 1], faces[:, 2]])
+    graph = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    face_comp = comp[faces[:, 0]]
+    vols = [abs(enclosed_volume(vertices, faces[face_comp == c])) for c in np.unique(face_comp)]
+    return sorted(vols, reverse=True)
 
 
 def _pair_name(k, own, name_of):
@@ -611,6 +642,13 @@ def _finish_bone(prep, own, lab, k, b, params, band, name, progress, thresholds)
         faces = faces[:, ::-1].copy()
     checks = check_surface(phys, faces)
     times.checks = time.perf_counter() - t0
+    if not checks.ok and planes and checks.n_components > 1:
+        pieces = _component_volumes(phys, faces)
+        raise SurfaceCheckError(
+            f"{name} is cut by the image boundary into {len(pieces)} separate pieces inside the "
+            f"image ({', '.join(f'{v / 1000:.1f}' for v in pieces)} ml): they join outside the "
+            "field of view, so one closed surface cannot hold them. Use a CT that contains more "
+            "of the bone, or split the segment into one segment per piece.", report=checks)
     if not checks.ok:
         raise SurfaceCheckError(
             f"The surface of {name} failed the watertight 2-manifold checks: "
@@ -630,7 +668,7 @@ def _finish_bone(prep, own, lab, k, b, params, band, name, progress, thresholds)
         inside, verts - corner, seg_all[box], (lab_b > 0) & (lab_b != k),
         (cores_b > 0) & (cores_b != k), _plaus.image_mask(box, planes, d), d,
         volume_mm3=enclosed_volume(phys, faces), coarseness=prep.coarseness, band_mm=band,
-        edge_support=float("nan") if frac is None else frac)
+        edge_support=float("nan") if frac is None else frac, owned=own.owner[box] == k)
     _plaus.gate(plaus, coarseness=prep.coarseness, band_mm=band, name=name)
     times.plausibility = time.perf_counter() - t0
     warnings = []
@@ -640,6 +678,7 @@ def _finish_bone(prep, own, lab, k, b, params, band, name, progress, thresholds)
                 "The surface is watertight but not plausible: " + "; ".join(plaus.problems)
                 + ". (on_implausible = warn returns it with these warnings.)", report=plaus)
         warnings = list(plaus.problems)
+    warnings += plaus.warnings
     constraints = b["constraints"]
     dist, _ = cKDTree(grid.grid_to_physical(constraints)).query(phys, workers=-1) \
         if len(constraints) else (np.zeros(len(phys)), None)

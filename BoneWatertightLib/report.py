@@ -141,6 +141,7 @@ class PairReport:
     contact_area_mm2: float = 0.0
     joint_contact_mm2: float = 0.0
     joint_valley_seen_fraction: Optional[float] = None
+    warnings: list = field(default_factory=list)
 
     @property
     def ok(self) -> bool:

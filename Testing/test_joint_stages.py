@@ -268,3 +268,31 @@ def test_distance_transform_is_the_same_with_and_without_edt(monkeypatch):
     slow = distance.signed_distance(mask, (0.5, 0.8, 0.8))
     assert np.allclose(fast, slow, atol=1e-4)
     assert distance.distance_inside(np.zeros((4, 4, 4), bool)).max() == 0
+
+
+def test_a_surface_far_outside_its_segment_gets_a_warning():
+    """Not a failure (a rough segment can be that far off), but said: the p95 of the vertices'
+    distance outside the segment beyond 1.3 x coarseness + 0.5 mm."""
+    shape = (50, 50, 50)
+    label = _ball(shape, (25, 25, 25), 10)
+    near = _measure(_ball(shape, (25, 25, 25), 11), label)
+    assert near.ok and near.warnings == []
+    far = _measure(_ball(shape, (25, 25, 25), 14), label)
+    assert far.p95_excursion_mm > 2.0 * 1.3 + 0.5
+    assert not far.problems and "unlabelled neighbouring bone" in far.warnings[0]
+
+
+def test_bones_split_by_their_labels_alone_get_a_pair_warning():
+    """Two balls overlapping by 4 mm: no joint space on the CT, the labels split them; the pair
+    and both bones carry a warning. 1.5 mm apart (a visible gap): none."""
+    from BoneWatertightLib.params import Parameters
+    from BoneWatertightLib.pipeline import reconstruct_many
+    from test_child_run import two_balls
+
+    for gap, warned in ((1.5, False), (-4.0, True)):
+        ct, lab, _ = two_balls(gap=gap)
+        res = reconstruct_many(ct, lab, [1, 2], Parameters(on_implausible="warn", iterations=4))
+        (pair,) = res.pairs
+        assert bool(pair.warnings) == warned, (gap, pair)
+        for bone in res.bones:
+            assert any("joint space on only" in w for w in bone.report.warnings) == warned

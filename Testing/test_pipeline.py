@@ -311,3 +311,30 @@ def test_error_unknown_preset_and_parameter():
         preset("skull")
     with pytest.raises(errors.InputError):
         Parameters().replace(not_a_parameter=1)
+
+
+def test_a_bone_cut_into_two_pieces_by_the_image_boundary_is_refused_clearly():
+    """A U-shaped bone whose arch lies outside the scan: inside the image it is two arms that
+    join only beyond the field of view. One closed surface cannot hold them: the run must not
+    return one arm as a success (it did: the untouched arm counted as an island)."""
+    n, s = 56, 1.0
+    z, y, x = np.mgrid[:n, :n, :n].astype(float) * s
+    cx, cz = 28.0, 28.0
+    r_major, r_minor = 14.0, 5.0
+    # arch: a half torus around (cx, y=40, cz) in the x-y plane; arms down to y = 12
+    ring = np.hypot(np.hypot(x - cx, y - 40.0) - r_major, z - cz) <= r_minor
+    arch = ring & (y >= 40.0)
+    arms = ((np.hypot(x - (cx - r_major), z - cz) <= r_minor)
+            | (np.hypot(x - (cx + r_major), z - cz) <= r_minor)) & (y >= 12.0) & (y < 40.0)
+    bone = (arch | arms) & (y <= 47.0)  # the image ends at y = 47: the arch's top is outside
+    keep = slice(0, 48)
+    hu = np.where(bone, 1300.0, 20.0)[:, keep, :]
+    ct = sitk.GetImageFromArray(hu.astype(np.int16))
+    ct = sitk.Cast(sitk.SmoothingRecursiveGaussian(sitk.Cast(ct, sitk.sitkFloat32), 0.6),
+                   sitk.sitkInt16)
+    mask = sitk.GetImageFromArray(bone[:, keep, :].astype(np.uint8))
+    for img in (ct, mask):
+        img.SetSpacing((s, s, s))
+    with pytest.raises(errors.PlausibilityError, match=r"separate piece of bone that the surface "
+                                                      r"does not reach"):
+        reconstruct(ct, mask, Parameters(spacing=1.0, iterations=2, views=6))

@@ -22,6 +22,11 @@ CG_RTOL = 1e-7
 CG_MAX_ITERATIONS = 500
 # Rounds of the local back-off in safe_update before it gives up.
 BACKOFF_ROUNDS = 8
+# Then up to this many rounds that also put back the 1-ring around the bad triangles' vertices
+# (each round one ring more): reverting a vertex can make its moved neighbours cross instead,
+# and on real CT that cascade outlasted the plain rounds, so a whole refinement was discarded
+# for 15 faces.
+BACKOFF_GROW_ROUNDS = 8
 # Tangential relaxation of a fresh contour: iterations and step weight.
 RELAX_ITERATIONS = 5
 RELAX_WEIGHT = 0.5
@@ -143,7 +148,8 @@ def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int
     new = new.copy()
     fn_before = face_normals(old, faces)
     bad_faces = 0
-    for _ in range(rounds):
+    ring = 0
+    for r in range(rounds + BACKOFF_GROW_ROUNDS):
         bad = np.einsum("ij,ij->i", fn_before, face_normals(new, faces)) < 0.0
         if not bad.any():
             if not intersections:
@@ -153,8 +159,13 @@ def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int
                 return new, True, 0
             bad[np.unique(pairs)] = True
         bad_faces = int(bad.sum())
-        idx = np.unique(faces[bad])
-        new[idx] = old[idx]
+        back = np.zeros(len(new), bool)
+        back[faces[bad]] = True
+        if r >= rounds:
+            ring += 1
+            for _ in range(ring):
+                back[faces[back[faces].any(axis=1)]] = True
+        new[back] = old[back]
     return new, False, bad_faces
 
 

@@ -39,13 +39,74 @@ VALLEY_REACH_MM = 2.0
 VALLEY_MIN_REACH_MM = 1.5
 # Value of profile samples outside the grid (air).
 OUTSIDE_HU = -1000.0
+# Automatic edge level (edge_level None): the blurred-slab model. A cortex of thickness w blurred
+# by a Gaussian of width s peaks at q = 2 Phi(w / 2s) - 1 of the full contrast and crosses its
+# true outer border at r(q) = (Phi(w / s) - 1/2) / q of its own peak: r = 1/2 for thick cortex
+# (the half maximum), up to ~0.9 for cortex much thinner than the blur, whose half maximum lies
+# outside the bone. The full contrast is the SLAB_REFERENCE_PERCENTILE of the bone's own
+# profile contrasts (its thickest cortex); q is bounded below by SLAB_MIN_RATIO.
+SLAB_REFERENCE_PERCENTILE = 90.0
+SLAB_MIN_RATIO = 0.3
+SLAB_LEVEL_RANGE = (0.5, 0.9)
+# The model holds for a cortex with low-density marrow behind it (the profile falls again
+# inside the peak). Behind a thin cortex filled with cancellous bone (a vertebral body at 3 mm)
+# the profile is a step up to the interior, whose edge is the half maximum: the correction is
+# scaled by how far the profile falls within SLAB_INNER_MM inside the peak, as a fraction of the
+# peak - valley contrast.
+SLAB_INNER_MM = 2.0
 # A vertex whose shift differs from its 1-ring's mean by more than
 # max(OUTLIER_MM, OUTLIER_VOXELS * spacing) gets no target.
 OUTLIER_MM = 0.4
 OUTLIER_VOXELS = 0.8
 
 
-def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
+def slab_edge_level(ratio, fall=1.0):
+    """The blurred-slab model's edge level (see the module constants) for a profile whose
+    contrast is ``ratio`` (array) of the full contrast and which falls by ``fall`` (array, a
+    fraction of its contrast) inside its peak: 0.5 for a step (fall 0), the model's level for
+    a slab with nothing behind it (fall 1)."""
+    from scipy.special import ndtr, ndtri
+
+    q = np.clip(np.asarray(ratio, dtype=np.float64), SLAB_MIN_RATIO, 1.0 - 1e-9)
+    a = 2.0 * ndtri(0.5 * (1.0 + q))  # w / s
+    full = np.clip((ndtr(a) - 0.5) / q, *SLAB_LEVEL_RANGE)
+    return 0.5 + np.clip(fall, 0.0, 1.0) * (full - 0.5)
+
+
+def _profiles(vertices, faces, ct_smooth, spacing):
+    """CT profiles along the vertex normals: (normals, t (k,), profiles (n, k), peak index,
+    peak, valley, inner): inner is the lowest value within SLAB_INNER_MM inside the peak."""
+    n = vertex_normals(vertices, faces)
+    t = np.arange(PROFILE_RANGE_MM[0], PROFILE_RANGE_MM[1] + 1e-9, PROFILE_STEP_MM)
+    pts = vertices[:, None, :] + t[None, :, None] * n[:, None, :]
+    prof = sample_field(ct_smooth, pts.reshape(-1, 3), spacing, order=1,
+                        cval=OUTSIDE_HU).reshape(len(vertices), len(t))
+    inner_zone = t <= PEAK_REACH_MM
+    i_peak = np.argmax(np.where(inner_zone[None, :], prof, -np.inf), axis=1)
+    peak = prof[np.arange(len(prof)), i_peak]
+    # Valley: the lowest value within 2 mm outside the peak (stops before a neighbour's cortex).
+    # The window always reaches 1.5 mm outside the vertex, so a flat interior (peak deep inside)
+    # still sees the soft tissue; a neighbour's cortex beyond the gap never lowers the minimum.
+    cols = np.arange(len(t))[None, :]
+    reach = np.maximum(t[i_peak] + VALLEY_REACH_MM, VALLEY_MIN_REACH_MM)
+    outside = (cols > i_peak[:, None]) & (t[None, :] <= reach[:, None])
+    valley = np.min(np.where(outside, prof, np.inf), axis=1)
+    behind = (cols < i_peak[:, None]) & (t[None, :] >= (t[i_peak] - SLAB_INNER_MM)[:, None])
+    inner = np.min(np.where(behind, prof, np.inf), axis=1)
+    inner = np.where(np.isfinite(inner), inner, peak)
+    return n, t, prof, i_peak, peak, valley, inner
+
+
+def contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast=MIN_CONTRAST_HU):
+    """The bone's full cortical contrast (HU) for the blurred-slab model: the
+    SLAB_REFERENCE_PERCENTILE of peak - valley over the vertices whose profile has an edge."""
+    _, _, _, _, peak, valley, _ = _profiles(vertices, faces, ct_smooth, spacing)
+    c = peak - valley
+    ok = np.isfinite(valley) & (c >= min_contrast) & (peak >= ht)
+    return float(np.percentile(c[ok], SLAB_REFERENCE_PERCENTILE)) if ok.any() else np.nan
+
+
+def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
                     max_shift=MAX_SHIFT_MM, min_contrast=MIN_CONTRAST_HU,
                     smoothness=REFINE_ALPHA, damping=REFINE_BETA, passes=REFINE_PASSES,
                     allowed=None, progress=None):
@@ -66,8 +127,9 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
         Voxel size in mm.
     ht : float
         HT in HU: a profile whose peak is below it gives no edge.
-    edge_level : float
-        Where between the outside valley (0) and the bone peak (1) the edge sits.
+    edge_level : float or None
+        Where between the outside valley (0) and the bone peak (1) the edge sits; None: per
+        vertex by the blurred-slab model (:func:`slab_edge_level`), 0.5 at thick cortex.
     max_shift, min_contrast, smoothness, damping, passes
         See the module constants (smoothness and damping are the refinement's own Laplacian and
         damping weights, not the deformation's alpha and beta).
@@ -90,6 +152,9 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
     v = vertices
     frac = 0.0
     found = np.zeros(len(vertices), bool)
+    if edge_level is None:
+        reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast)
+        edge_level = 0.5 if not np.isfinite(reference) else ("slab", reference)
     L = laplacian(len(vertices), faces)
     ops = ((L.T @ L).tocsr(), (sp.identity(len(vertices), format="csr") - L).tocsr())
     for i in range(passes):
@@ -130,27 +195,27 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=0.6,
 
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
                 min_contrast=MIN_CONTRAST_HU, smoothness=REFINE_ALPHA, damping=REFINE_BETA, ops=None,
-                edge_level=0.6, allowed=None):
+                edge_level=None, allowed=None):
     """Return (new vertices, per-vertex shift along the normal, edge found (n,) bool, ok).
 
-    The half-maximum points are soft targets of one regularised Laplacian step (as in the
-    deformation) followed by the local back-off, so the result never folds or self-intersects."""
-    n = vertex_normals(vertices, faces)
+    The edge points are soft targets of one regularised Laplacian step (as in the deformation)
+    followed by the local back-off, so the result never folds or self-intersects.
+    ``edge_level``: a number in (0, 1), or ("slab", full contrast in HU) for the blurred-slab
+    model's level per vertex; None: that model with the full contrast of these vertices
+    (:func:`contrast_reference`)."""
     step = PROFILE_STEP_MM
-    t = np.arange(PROFILE_RANGE_MM[0], PROFILE_RANGE_MM[1] + 1e-9, step)
-    pts = vertices[:, None, :] + t[None, :, None] * n[:, None, :]
-    prof = sample_field(ct_smooth, pts.reshape(-1, 3), spacing, order=1, cval=OUTSIDE_HU).reshape(len(vertices), len(t))
-    inner = t <= PEAK_REACH_MM
-    i_peak = np.argmax(np.where(inner[None, :], prof, -np.inf), axis=1)
-    peak = prof[np.arange(len(prof)), i_peak]
-    # Valley: the lowest value within 2 mm outside the peak (stops before a neighbour's cortex).
+    if edge_level is None:
+        reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast)
+        edge_level = 0.5 if not np.isfinite(reference) else ("slab", reference)
+    n, t, prof, i_peak, peak, valley, inner = _profiles(vertices, faces, ct_smooth, spacing)
     cols = np.arange(len(t))[None, :]
-    # The window always reaches 1.5 mm outside the vertex, so a flat interior (peak deep inside)
-    # still sees the soft tissue; a neighbour's cortex beyond the gap never lowers the minimum.
-    reach = np.maximum(t[i_peak] + VALLEY_REACH_MM, VALLEY_MIN_REACH_MM)
-    outside = (cols > i_peak[:, None]) & (t[None, :] <= reach[:, None])
-    valley = np.min(np.where(outside, prof, np.inf), axis=1)
-    level = valley + edge_level * (peak - valley)
+    if isinstance(edge_level, tuple):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            contrast = peak - valley
+            fraction = slab_edge_level(contrast / edge_level[1], (peak - inner) / contrast)
+    else:
+        fraction = edge_level
+    level = valley + fraction * (peak - valley)
     below = (prof < level[:, None]) & (cols > i_peak[:, None])
     first = np.argmax(below, axis=1)
     has = below[np.arange(len(prof)), first]

@@ -1,0 +1,60 @@
+"""The edge refinement's automatic level (the blurred-slab model, stages/refine.py)."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+from scipy.special import ndtr
+
+from BoneWatertightLib.stages import refine
+from test_pipeline import sphere_mesh
+
+
+def test_slab_level_is_the_half_maximum_for_thick_cortex_and_rises_for_thin():
+    assert refine.slab_edge_level(1.0) == pytest.approx(0.5, abs=1e-6)
+    # w = 2 s: the peak is 2 Phi(1) - 1 = 0.683 of the contrast, the border at
+    # (Phi(2) - 1/2) / 0.683 = 0.698 of the peak
+    q = 2 * ndtr(1.0) - 1
+    assert refine.slab_edge_level(q) == pytest.approx((ndtr(2.0) - 0.5) / q, abs=1e-6)
+    levels = refine.slab_edge_level(np.linspace(0.3, 1.0, 15))
+    assert np.all(np.diff(levels) <= 1e-12) and levels[0] <= refine.SLAB_LEVEL_RANGE[1]
+    # a step (the profile does not fall behind its peak) keeps the half maximum
+    assert refine.slab_edge_level(q, fall=0.0) == pytest.approx(0.5)
+    assert refine.slab_edge_level(q, fall=0.5) == pytest.approx(0.5 + 0.5 * (0.698 - 0.5),
+                                                                 abs=2e-3)
+
+
+def _half_thin_ball(radius=12.0, thin=0.8, d=0.25, blur=0.8):
+    """A ball whose upper half (z > 0) is solid cortex (1500 HU) and whose lower half is a
+    cortex ``thin`` mm thick around fat marrow (-50 HU), in soft tissue (40 HU), blurred."""
+    n = int(2 * (radius + 6) / d)
+    g = (np.arange(n) + 0.5) * d - (radius + 6)
+    z, y, x = np.meshgrid(g, g, g, indexing="ij")
+    r = np.sqrt(x * x + y * y + z * z)
+    ct = np.full(r.shape, 40.0)
+    ct[r <= radius] = -50.0
+    ct[(r <= radius) & ((z > 0) | (r > radius - thin))] = 1500.0
+    ct = ndimage.gaussian_filter(ct, blur / d).astype(np.float32)
+    return ct, d, radius + 6 - 0.5 * d  # grid millimetres = index * d
+
+
+def test_auto_level_finds_the_border_of_thin_cortex_where_the_half_maximum_is_outside():
+    ct, d, shift = _half_thin_ball()
+    s = sphere_mesh(12.3, 0.6)
+    v, f = s.vertices, s.faces
+    v = v + shift
+    results = {}
+    for level in (0.5, None):
+        out, _, frac, _ = refine.refine_to_edges(v, f, ct, d, ht=200.0, edge_level=level)
+        p = out - shift
+        err = np.linalg.norm(p, axis=1) - 12.0
+        low = p[:, 2] < -3.0
+        results[level] = (float(err[low].mean()), float(err[~low & (p[:, 2] > 3.0)].mean()))
+        assert frac > 0.95
+    thin_half, thick_half = results[0.5]
+    thin_auto, thick_auto = results[None]
+    # the half maximum of the blurred thin cortex lies outside the bone; the model corrects it
+    assert thin_half > 0.15
+    assert abs(thin_auto) < 0.5 * thin_half
+    # where the cortex is thick both are the half maximum
+    assert abs(thick_auto - thick_half) < 0.05
+    assert abs(thick_auto) < 0.1
