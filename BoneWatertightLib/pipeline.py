@@ -352,6 +352,16 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
             history += _contacts.resolve_contacts(sub_surfaces, others, lab.shape, d,
                                                   params.min_gap + extra * d,
                                                   progress=sub.stage(0.6, 1.0))
+        else:
+            # Still crossing after the field passes: a sub-voxel sliver; moved apart exactly.
+            keys = list(surfaces)
+            crossing = [(a, b) for i, a in enumerate(keys) for b in keys[i + 1:]
+                        if _contacts.pair_report(surfaces[a][0], surfaces[a][1], surfaces[b][0],
+                                                 surfaces[b][1])["crossing_face_pairs"]]
+            for a, b in crossing:
+                va, vb, _ = _contacts.push_apart_exact(surfaces[a][0], surfaces[a][1],
+                                                      surfaces[b][0], surfaces[b][1], d)
+                surfaces[a][0], surfaces[b][0] = va, vb
         for k, b in bones.items():
             b["vertices"] = surfaces[k][0]
             b["contacts"] = {"passes": [{"moved": rec[k][0], "still_closer_than_gap": rec[k][1]}

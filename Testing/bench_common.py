@@ -342,3 +342,15 @@ def jsonable(o):
     if isinstance(o, float) and not math.isfinite(o):
         return None
     return o
+
+
+def gate_text(pipe):
+    """The default (on_implausible = fail) outcome: fails on plausibility problems; warnings
+    (pairs split by labels alone, a surface far outside its segment) do not fail a run."""
+    problems = ((pipe or {}).get("plausibility") or {}).get("problems") or []
+    if problems:
+        return "**default FAILS**: " + short("; ".join(problems), 160)
+    w = (pipe or {}).get("warnings") or []
+    if not pipe:
+        return ""
+    return "pass" + (f" (warning: {short('; '.join(w), 120)})" if w else "")

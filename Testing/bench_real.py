@@ -257,7 +257,7 @@ def _bone_ok(b, p95, mx, lo, hi):
     if not b.get("ok"):
         return False, f"{b['name']} FAILED"
     d = b["distance"]
-    gate = not (b.get("pipeline") or {}).get("warnings")
+    gate = not ((b.get("pipeline") or {}).get("plausibility") or {}).get("problems")
     ok = b["checks"]["ok"] and gate and d["p95"] <= p95 and d["max"] <= mx and lo <= b["volume_ratio"] <= hi
     return ok, (f"{b['name']} {d['p95']:.2f}/{d['max']:.2f}/{b['volume_ratio']:.2f}"
                 + ("" if b["checks"]["ok"] else " checks FAIL") + ("" if gate else " gate FAILS"))
@@ -389,8 +389,9 @@ def report_lines(real):
 
 
 def _gate(b):
-    w = (b.get("pipeline") or {}).get("warnings") or []
-    return "pass" if not w else "**default FAILS**: " + short("; ".join(w), 200)
+    from bench_common import gate_text
+
+    return gate_text(b.get("pipeline"))
 
 
 def verdicts(real):  # pragma: no cover - convenience for interactive use

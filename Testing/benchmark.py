@@ -57,7 +57,7 @@ for _p in (ROOT, HERE):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
-from bench_common import (check, fig_cdf, fig_sections, fmt, inside_of, jsonable, md_table,  # noqa: E402
+from bench_common import (check, fig_cdf, fig_sections, fmt, gate_text, inside_of, jsonable, md_table,  # noqa: E402
                           pair_measures, render_distance, short, truth_metrics, verdict)
 from bench_worker import run_isolated  # noqa: E402
 
@@ -183,13 +183,6 @@ def eval_bone(bone, truth, neighbour, n_samples, keep_samples=False):
     if bone.get("report"):
         out["pipeline"] = pipeline_summary(bone["report"])
     return out
-
-
-def gate_text(pipe):
-    w = (pipe or {}).get("warnings") or []
-    if not w:
-        return "pass" if pipe else ""
-    return "**default FAILS**: " + short("; ".join(w), 160)
 
 
 def _workdir(args):

@@ -20,8 +20,9 @@ from ..errors import ReconstructionError
 
 # Vertices closer than this (x the mean edge length) to the plane are moved off it first, so
 # no clipped triangle is a sliver. Where two sheets of the surface lie closer than that to each
-# other, the move can make the cut outline cross itself: then the next, smaller fraction is
-# tried (found on a rib cage cut by a 20-slice CT).
+# other, the move can make the cut outline cross itself, or the surface near the plane cross
+# itself or the cap: then the next, smaller fraction is tried (found on a rib cage cut by a
+# 20-slice CT and on a proximal femur cut by a 3 mm pelvis CT).
 SNAP_FRACTIONS = (0.2, 0.1, 0.05, 0.02)
 SNAP_FRACTION = SNAP_FRACTIONS[0]
 # Interior cap points keep this distance (x the edge length, and x each loop edge's length)
@@ -276,11 +277,28 @@ def cap_plane(vertices: np.ndarray, faces: np.ndarray, flags: np.ndarray, axis: 
                 extra, tri = triangulate_region(p2, lloops, edge_length)
             except CapError:
                 extra, tri = _triangulate_contours(p2, lloops)
-            break
+            capped = _close(v, f, fl, ids, extra, tri, axis, side, position, uv)
+            if _crosses_near_plane(capped[0], capped[1], axis, position, edge_length):
+                raise CapError("The cap at the image boundary would cross the surface there.")
+            return capped
         except CapError as exc:
             error = exc
-    else:
-        raise error
+    raise error
+
+
+def _crosses_near_plane(v, f, axis, position, edge_length) -> bool:
+    """Whether faces within a few edge lengths of the plane (the only ones the clip, the snap
+    and the cap change) intersect each other."""
+    from .checks import find_self_intersections
+
+    near = np.abs(v[:, axis] - position) <= 3.0 * edge_length
+    sub = f[near[f].any(axis=1)]
+    return len(sub) > 0 and len(find_self_intersections(v, sub)) > 0
+
+
+def _close(v, f, fl, ids, extra, tri, axis, side, position, uv):
+    """The clipped surface closed by the cap triangles ``tri`` (indexing ``ids`` then the
+    interior points ``extra``): (vertices, faces, flags, cap area)."""
     new_ids = np.concatenate([ids, len(v) + np.arange(len(extra))])
     extra3 = np.zeros((len(extra), 3))
     extra3[:, uv] = extra

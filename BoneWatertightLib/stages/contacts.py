@@ -27,7 +27,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ..mesh.checks import find_self_intersections
-from ..mesh.operators import laplacian, safe_update, sample_field, solve_spd
+from ..mesh.operators import laplacian, safe_update, sample_field, solve_spd, vertex_normals
 from ..mesh.surface import Surface, to_polydata
 from .threshold import bbox_slices, near
 from ..mesh.distance import signed_distance as signed_distance_map
@@ -212,6 +212,41 @@ def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, 
         if all(b == 0 for _, b in record.values()):
             break
     return history
+
+
+# Last resort after the voxel-field passes (a sub-voxel sliver of one surface through the
+# other): at most EXACT_ROUNDS rounds that move the vertices of the crossing faces of both
+# surfaces inward along their normals by EXACT_STEP_VOXELS x the grid spacing.
+EXACT_ROUNDS = 12
+EXACT_STEP_VOXELS = 0.25
+
+
+def push_apart_exact(va, fa, vb, fb, spacing: float, rounds: int = EXACT_ROUNDS):
+    """Move the vertices of faces of one surface that cross the other inward (both surfaces),
+    each step checked for flips and self-intersections, until no face of one crosses the other.
+
+    Returns (va, vb, ok): ok when no crossing is left."""
+    va = np.array(va, dtype=np.float64)
+    vb = np.array(vb, dtype=np.float64)
+    step = EXACT_STEP_VOXELS * spacing
+    for _ in range(rounds):
+        pairs = find_self_intersections(np.vstack([va, vb]), np.vstack([fa, fb + len(va)]))
+        cross = pairs[(pairs[:, 0] < len(fa)) != (pairs[:, 1] < len(fa))] if len(pairs) else pairs
+        if len(cross) == 0:
+            return va, vb, True
+        faces_a = np.unique(cross[cross < len(fa)])
+        faces_b = np.unique(cross[cross >= len(fa)]) - len(fa)
+        out = []
+        for v, f, bad in ((va, fa, faces_a), (vb, fb, faces_b)):
+            idx = np.unique(f[bad])
+            new = v.copy()
+            new[idx] -= step * vertex_normals(v, f)[idx]
+            new, _, _ = safe_update(v, new, f, intersections=True)
+            out.append(new)
+        va, vb = out
+    pairs = find_self_intersections(np.vstack([va, vb]), np.vstack([fa, fb + len(va)]))
+    ok = not len(pairs) or not ((pairs[:, 0] < len(fa)) != (pairs[:, 1] < len(fa))).any()
+    return va, vb, ok
 
 
 def pair_report(va, fa, vb, fb) -> dict:
