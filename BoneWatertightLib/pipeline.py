@@ -410,6 +410,17 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
             for r in (by_k[k] for k in good):
                 if r.name in (p.a, p.b):
                     r.report.warnings.append(p.warnings[-1])
+    # The same for a bone and a neighbour label that is not reconstructed in this run.
+    for cc in own.contacts:
+        for k, other in ((cc["a"], cc["b"]), (cc["b"], cc["a"])):
+            seen = cc.get("valley_seen_fraction")
+            if (k in good and other not in prep.targets and other < own.other and seen is not None
+                    and seen < JOINT_WARN_SEEN and cc["contact_area_mm2"] > JOINT_WARN_MIN_MM2):
+                by_k[k].report.warnings.append(
+                    f"{name_of(k)} | {name_of(other)} (neighbour): the CT shows a joint space on "
+                    f"only {100 * seen:.0f} % of their {cc['contact_area_mm2']:.0f} mm^2 contact; "
+                    "elsewhere the boundary follows the segments' labels: check the surface at "
+                    "the joint")
     bad = [p for p in pairs if not p.ok]
     if bad:
         text = "; ".join(f"{p.a} and {p.b}: {p.crossing_face_pairs} crossing face pairs, "

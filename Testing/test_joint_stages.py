@@ -296,3 +296,15 @@ def test_bones_split_by_their_labels_alone_get_a_pair_warning():
         assert bool(pair.warnings) == warned, (gap, pair)
         for bone in res.bones:
             assert any("joint space on only" in w for w in bone.report.warnings) == warned
+
+
+def test_a_bone_split_from_a_neighbour_label_by_the_labels_alone_gets_a_warning():
+    from BoneWatertightLib.params import Parameters
+    from BoneWatertightLib.pipeline import reconstruct_many
+    from test_child_run import two_balls
+
+    for gap, warned in ((1.5, False), (-4.0, True)):
+        ct, lab, _ = two_balls(gap=gap)
+        res = reconstruct_many(ct, lab, [1], Parameters(on_implausible="warn", iterations=4))
+        assert any("(neighbour): the CT shows a joint space on only" in w
+                   for w in res.bones[0].report.warnings) == warned
