@@ -700,6 +700,8 @@ def _finish_bone(prep, own, lab, k, b, params, band, name, progress, thresholds)
                 + ". (on_implausible = warn returns it with these warnings.)", report=plaus)
         warnings = list(plaus.problems)
     warnings += plaus.warnings
+    plaus.segment_genus = _plaus.segment_genus(seg_all[box] & _plaus.image_mask(box, planes, d), d)
+    warnings += _plaus.tunnel_warning(name, checks.genus, plaus.segment_genus)
     constraints = b["constraints"]
     dist, _ = cKDTree(grid.grid_to_physical(constraints)).query(phys, workers=-1) \
         if len(constraints) else (np.zeros(len(phys)), None)

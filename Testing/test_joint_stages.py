@@ -308,3 +308,15 @@ def test_a_bone_split_from_a_neighbour_label_by_the_labels_alone_gets_a_warning(
         res = reconstruct_many(ct, lab, [1], Parameters(on_implausible="warn", iterations=4))
         assert any("(neighbour): the CT shows a joint space on only" in w
                    for w in res.bones[0].report.warnings) == warned
+
+
+def test_segment_genus_and_the_tunnel_warning():
+    shape = (40, 40, 40)
+    ball = _ball(shape, (20, 20, 20), 10)
+    assert plausibility.segment_genus(ball, 1.0) == 0
+    z, y, x = np.indices((30, 50, 50))
+    ring = (np.hypot(np.hypot(x - 25.0, y - 25.0) - 12.0, z - 15.0) <= 4.0)
+    assert plausibility.segment_genus(ring, 1.0) == 1
+    assert plausibility.tunnel_warning("hip", 1, 1) == []
+    (text,) = plausibility.tunnel_warning("hip", 2, 1)
+    assert "1 tunnel more than its segment (genus 2 against 1)" in text

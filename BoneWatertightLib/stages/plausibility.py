@@ -81,6 +81,7 @@ class Plausibility:
     edge_support: float = 1.0
     untouched_segment_ml: float = 0.0
     untouched_bone_ml: float = 0.0
+    segment_genus: int | None = None
     bounds: dict = field(default_factory=dict)
     problems: list = field(default_factory=list)
     warnings: list = field(default_factory=list)
@@ -251,3 +252,30 @@ def image_mask(box: tuple, caps, spacing: float) -> np.ndarray:
 
 def box_of(mask: np.ndarray, pad: int) -> tuple:
     return bbox_slices(mask, pad)
+
+
+def segment_genus(label: np.ndarray, spacing: float) -> int:
+    """Genus of the largest closed surface of a binary segment (z, y, x) at the 0.5 level
+    (flying edges): its tunnels, e.g. 1 for a vertebra's canal or a hip bone's obturator
+    foramen."""
+    from .poisson import contour
+
+    surf = contour(np.pad(label, 1).astype(np.float32), (0.0, 0.0, 0.0), spacing, 0.5,
+                   smooth_iterations=0)
+    f = surf.faces
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    n_edges = len(np.unique(edges, axis=0))
+    chi = surf.n_vertices - n_edges + len(f)
+    return max(0, (2 - chi) // 2)
+
+
+def tunnel_warning(name: str, surface_genus: int, segment_genus: int) -> list:
+    """A warning when the surface has more tunnels than its segment: bone too thin for the
+    thresholds (an iliac wing or a sinus wall on thick slices) came out as a hole."""
+    if surface_genus <= segment_genus:
+        return []
+    extra = surface_genus - segment_genus
+    return [f"{name}: the surface has {extra} tunnel{'s' if extra > 1 else ''} more than its "
+            f"segment (genus {surface_genus} against {segment_genus}): where the bone is thinner "
+            "than the CT resolves it may have come out as a hole. Check the surface; a lower HT "
+            "or a finer CT closes it"]
