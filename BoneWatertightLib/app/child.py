@@ -55,6 +55,8 @@ from ..errors import (EXIT_CANCELLED, EXIT_DEPENDENCY, EXIT_FAILED, EXIT_INPUT, 
                       EXIT_OUTPUT, BoneWatertightError, CancelledError, DependencyError,
                       EmptySegmentError, InputError, OutputError, ReconstructionError)
 from ..params import SCHEMA, Parameters
+# One bone of a child run is the pipeline's own result type.
+from ..pipeline import ReconstructionResult as ChildBone
 
 PROGRESS_PREFIX = "PROGRESS "
 ERROR_PREFIX = "ERROR "
@@ -144,24 +146,6 @@ def _resolve_executable(python: str) -> str:
 
 # ----------------------------------------------------------------------------------------
 # what a finished run gives
-
-
-@dataclass
-class ChildBone:
-    """One bone of a child run: the attributes of the pipeline's ``ReconstructionResult``
-    (surface in LPS with its point data, distances, typed report, intermediates)."""
-
-    surface: object
-    distance_to_constraints: object
-    report: object
-    intermediates: dict = field(default_factory=dict)
-    label: int = 0
-    name: str = ""
-    error: Optional[Exception] = None
-
-    @property
-    def ok(self) -> bool:
-        return self.error is None
 
 
 @dataclass
