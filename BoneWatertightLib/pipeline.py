@@ -336,10 +336,7 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
         # The fields are voxel-accurate; the exact test decides. Pairs that still cross get
         # more passes with a wider margin.
         for extra in range(1, CONTACT_RETRIES + 1):
-            keys = list(surfaces)
-            crossing = [(a, b) for i, a in enumerate(keys) for b in keys[i + 1:]
-                        if _contacts.pair_report(surfaces[a][0], surfaces[a][1], surfaces[b][0],
-                                                 surfaces[b][1])["crossing_face_pairs"]]
+            crossing = _crossing_pairs(surfaces)
             if not crossing:
                 break
             involved = {k for pair in crossing for k in pair}
@@ -354,10 +351,7 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
                                                   progress=sub.stage(0.6, 1.0))
         else:
             # Still crossing after the field passes: a sub-voxel sliver; moved apart exactly.
-            keys = list(surfaces)
-            crossing = [(a, b) for i, a in enumerate(keys) for b in keys[i + 1:]
-                        if _contacts.pair_report(surfaces[a][0], surfaces[a][1], surfaces[b][0],
-                                                 surfaces[b][1])["crossing_face_pairs"]]
+            crossing = _crossing_pairs(surfaces)
             for a, b in crossing:
                 va, vb, _ = _contacts.push_apart_exact(surfaces[a][0], surfaces[a][1],
                                                       surfaces[b][0], surfaces[b][1], d)
@@ -495,6 +489,14 @@ def size_problems(prep, params: Parameters, names: Optional[dict] = None) -> dic
                 f"{np.ceil(edge * over ** (1 / 3) * 100) / 100:g} mm (or auto), or raise "
                 "max_memory_gb.")
     return problems
+
+
+def _crossing_pairs(surfaces: dict) -> list:
+    """The pairs (a, b) of {key: [vertices, faces]} whose faces cross (exact test)."""
+    keys = list(surfaces)
+    return [(a, b) for i, a in enumerate(keys) for b in keys[i + 1:]
+            if _contacts.pair_report(surfaces[a][0], surfaces[a][1], surfaces[b][0],
+                                     surfaces[b][1])["crossing_face_pairs"]]
 
 
 def _component_volumes(vertices, faces) -> list:

@@ -33,15 +33,20 @@ CANCEL_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "
                        if hasattr(signal, name))
 
 
-def load_reconstruct():
-    """The pipeline's entry function, or DependencyError when it cannot be imported."""
+def _pipeline_entry(name: str):
+    """An entry function of the pipeline, or DependencyError when it cannot be imported."""
     try:
-        from ..pipeline import reconstruct
+        from .. import pipeline
     except ImportError as exc:
         if isinstance(exc, DependencyError):
             raise
         raise DependencyError(f"The reconstruction pipeline cannot be imported: {exc}") from exc
-    return reconstruct
+    return getattr(pipeline, name)
+
+
+def load_reconstruct():
+    """The pipeline's entry function, or DependencyError when it cannot be imported."""
+    return _pipeline_entry("reconstruct")
 
 
 def safe_name(text: str) -> str:
@@ -265,13 +270,7 @@ def run_case(ct, mask, segment_name: str, out: str, params: Parameters, *,
 
 def load_reconstruct_many():
     """The several-bone pipeline entry, or DependencyError when it cannot be imported."""
-    try:
-        from ..pipeline import reconstruct_many
-    except ImportError as exc:
-        if isinstance(exc, DependencyError):
-            raise
-        raise DependencyError(f"The reconstruction pipeline cannot be imported: {exc}") from exc
-    return reconstruct_many
+    return _pipeline_entry("reconstruct_many")
 
 
 @dataclass
