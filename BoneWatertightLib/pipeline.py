@@ -43,7 +43,8 @@ from .report import (Counts, DistanceSummary, JointReport, PairReport, PipelineR
                      Refinement, StageTimes, constants_of)
 from .stages import autothreshold as _auto, contacts as _contacts, deform as _deform
 from .stages import filtering as _filtering, ownership as _ownership, plausibility as _plaus
-from .stages import poisson as _poisson, prepare as _prepare, refine as _refine
+from .stages import plates as _plates, poisson as _poisson, prepare as _prepare
+from .stages import refine as _refine
 from .stages import threshold as _threshold, visible as _visible
 from .stages.autothreshold import auto_thresholds
 from .stages.deform import Deformer
@@ -299,7 +300,7 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
         part = sub.stage(i / len(prep.targets), (i + 1) / len(prep.targets))
         try:
             bones[k] = _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, part,
-                                     name_of(k), step_voxels)
+                                     name_of(k), step_voxels, levels=(soft, cortex))
         except Exception as exc:  # noqa: BLE001 - fail() re-raises unless keep_going
             fail(k, exc)
 
@@ -523,6 +524,14 @@ def _threshold_error(name, ht, theta_max, vals):
 
     lo = float(np.min(vals)) if len(vals) else float("nan")
     hi = float(np.max(vals)) if len(vals) else float("nan")
+    if hi < ht:
+        # Nothing inside the segment is bone-like at all: the segment is off the bone.
+        what = "air" if hi < -200 else "fat" if hi < -30 else "soft tissue"
+        return ThresholdError(
+            f"Segment {name} covers no bone on this CT: its HU range is {lo:.0f} to {hi:.0f} "
+            f"({what}), all below HT = {ht:g} HU. Check that the segment belongs to this CT and "
+            "lies on the bone (a misplaced or wrong segment), or lower HT if the bone is this "
+            "faint.")
     return ThresholdError(
         f"No voxel of segment {name} lies in [HT, theta_max] = [{ht:g}, {theta_max:g}] HU "
         f"(the segment's HU range is {lo:.0f} to {hi:.0f}): lower HT (or leave it on auto), or "
@@ -543,15 +552,53 @@ def _fixed_masks(own, lab, targets, n) -> dict:
     return fixed
 
 
-def _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, progress, name, step_voxels):
-    """Threshold windows, visible points and M0 of bone k (grid mm)."""
+def _bone_plates(prep, own, masks, k, ht, levels, edge):
+    """Thin plates of bone k (:mod:`.stages.plates`) on its box, and the box's plate mask."""
+    d = prep.grid.spacing
+    soft, cortex = levels
+    sl, reg = own.regions[k]
+    region = np.zeros(prep.labels.shape, bool)
+    region[sl] = reg
+    box = masks.box
+    # Inside or right along the segment (within half its coarseness), not another bone's.
+    along = ndimage.binary_dilation(
+        prep.labels[box] == k, structure=_threshold.SIX,
+        iterations=max(1, int(round(0.5 * prep.coarseness / d))))
+    region = region[box] & along & ((own.owner[box] == 0) | (own.owner[box] == k))
+    # A ridge as high as the label level always counts; fainter ones where the noise allows.
+    max_contrast = _ownership.LABEL_LEVEL_FRACTION * (ht - soft)
+    t_min = _plates.PLATE_MIN_STEPS * max(d, edge / _poisson.REMESH_EDGE_RATIO)
+    resolved = ndimage.binary_erosion(masks.occupancy, structure=_threshold.SIX,
+                                      iterations=max(1, int(round(0.5 * t_min / d))))
+    plates = _plates.find_plates(
+        prep.ct[box], region, masks.w_ht, resolved, d, native_spacing=prep.ct_spacing,
+        soft=soft, cortex=cortex, max_contrast=max_contrast, min_thickness=t_min,
+        origin=masks.origin)
+    shape = masks.w_ht.shape
+    return plates, plates.mask(shape, masks.origin) if plates.n else np.zeros(shape, bool)
+
+
+def _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, progress, name, step_voxels,
+                  levels):
+    """Threshold windows, thin plates, visible points and M0 of bone k (grid mm)."""
     d = prep.grid.spacing
     times = StageTimes()
     t0 = time.perf_counter()
     masks = bone_masks(ct_f, own.owner, own.cores, lab, k, d, h0=h0, theta_max=params.theta_max,
-                       coarseness=c, opening=params.opening, closing=params.closing)
+                       coarseness=c, opening=params.opening, closing=params.closing,
+                       unsupported=own.unsupported)
     separation = erosions_to_separate(ct_f, own.owner, k, d, h0=h0, theta_max=params.theta_max,
                                       step_voxels=step_voxels, max_erosions=params.max_erosions)
+    edge = params.edge_length if params.edge_length is not None else d
+    # Plates thinner than the CT resolves join the bone as slabs of the model's thickness: in
+    # the visible-point candidates, the deformation's inside test and M0 (fused below).
+    plates, plate_mask = _bone_plates(prep, own, masks, k, ht, levels, edge)
+    if plates.n:
+        masks.w_ht |= plate_mask
+        masks.far |= plate_mask & ~masks.w_h0
+        masks.solid_h0 |= plate_mask
+        masks.occupancy |= plate_mask
+        masks.info["voxels_plate"] = int(plate_mask.sum())
     times.threshold = time.perf_counter() - t0
     progress(0.2, f"{name}: visible points")
     t0 = time.perf_counter()
@@ -583,9 +630,20 @@ def _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, progress, name, st
     times.visible = time.perf_counter() - t0
     progress(0.5, f"{name}: Poisson surface M0")
     t0 = time.perf_counter()
-    edge = params.edge_length if params.edge_length is not None else d
     normals = mask_normals(masks.solid_h0, visible, d)
-    m0, raw = initial_surface(visible, normals, params.poisson_depth, edge)
+    # M0 joins what Poisson at depth <= 7 cannot resolve (a plate of a few voxels in a long
+    # bone) and, where it then has tunnels its segment does not have, the segment (grid mm
+    # relative to the box corner).
+    trusted = (lab[masks.box] == k) & ((own.owner[masks.box] == 0) | (own.owner[masks.box] == k))
+    if own.unsupported is not None:
+        trusted &= ~own.unsupported[masks.box]
+    fusion = _poisson.Fusion(label=trusted, label_origin=np.zeros(3), label_spacing=d,
+                             genus=_plaus.segment_genus(trusted, d), close_mm=(c,))
+    if plates.n:
+        fusion.plates = lambda shape, lo, h: plates.field(shape, np.asarray(lo) + origin, h)
+        fusion.plates_box = (plates.points.min(axis=0) - origin,
+                             plates.points.max(axis=0) - origin)
+    m0, raw = initial_surface(visible, normals, params.poisson_depth, edge, fusion=fusion)
     m0 = Surface(m0.vertices + origin, m0.faces)
     times.poisson = time.perf_counter() - t0
     progress(1.0, f"{name}: M0 done")
@@ -601,6 +659,7 @@ def _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, progress, name, st
             "b_ht": b_ht + origin, "n_candidates": len(candidates),
             "vis_info": vis_info, "times": times, "separation": separation,
             "vertices": m0.vertices.copy(), "faces": m0.faces, "history": [],
+            "plates": plates, "fusion": fusion,
             "refinement": Refinement(applied=False), "contacts": {}}
 
 
@@ -629,9 +688,10 @@ def _shape_bone(b, ct_smooth, ht, params, d, allowed, progress):
     t0 = time.perf_counter()
     if params.refine_edges:
         before = verts
-        verts, shift, frac, found = refine_to_edges(verts, b["faces"], ct_smooth, d, ht,
-                                                    edge_level=params.edge_level, allowed=allowed,
-                                                    progress=progress.stage(0.6, 1.0))
+        plates = b["plates"]
+        verts, shift, frac, found = refine_to_edges(
+            verts, b["faces"], ct_smooth, d, ht, edge_level=params.edge_level, allowed=allowed,
+            progress=progress.stage(0.6, 1.0), plate_targets=plates.targets if plates.n else None)
         # Edge support on the free surface: where the bone touches another one (no joint space
         # on the CT) no edge is expected.
         free = np.ones(len(verts), bool)
@@ -691,7 +751,9 @@ def _finish_bone(prep, own, lab, k, b, params, band, name, progress, thresholds)
         inside, verts - corner, seg_all[box], (lab_b > 0) & (lab_b != k),
         (cores_b > 0) & (cores_b != k), _plaus.image_mask(box, planes, d), d,
         volume_mm3=enclosed_volume(phys, faces), coarseness=prep.coarseness, band_mm=band,
-        edge_support=float("nan") if frac is None else frac, owned=own.owner[box] == k)
+        edge_support=float("nan") if frac is None else frac, owned=own.owner[box] == k,
+        unsupported=None if own.unsupported is None else own.unsupported[box],
+        unsupported_pieces=len(own.info.get("unsupported", {}).get(k, [])))
     _plaus.gate(plaus, coarseness=prep.coarseness, band_mm=band, name=name)
     times.plausibility = time.perf_counter() - t0
     warnings = []
@@ -726,7 +788,8 @@ def _finish_bone(prep, own, lab, k, b, params, band, name, progress, thresholds)
     sep = b["separation"]
     report = PipelineReport(
         version=__version__, parameters=params.to_dict(), input=prep.info, timings=times,
-        threshold=dict(masks.info, h0=thresholds["h0"], ht=thresholds["ht"]),
+        threshold=dict(masks.info, h0=thresholds["h0"], ht=thresholds["ht"],
+                       plates=b["plates"].info, fusion=dict(b["fusion"].info)),
         counts=Counts(p_h0_surface_points=int(b["n_candidates"]),
                       visible_points=int(len(b["visible"])), ht_boundary_points=int(len(b["b_ht"])),
                       constraint_points=int(len(constraints)),
@@ -756,5 +819,5 @@ def pipeline_constants() -> dict:
     import sys
 
     return constants_of(sys.modules[__name__], _prepare, _filtering, _auto, _ownership,
-                        _threshold, _visible, _poisson, _deform, _refine, _contacts, _plaus,
+                        _threshold, _plates, _visible, _poisson, _deform, _refine, _contacts, _plaus,
                         _cap, _operators, _checks)

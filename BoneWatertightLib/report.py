@@ -277,6 +277,10 @@ def shape_text(pipeline) -> str:
     if plaus is not None:
         parts.append(f"volume {plaus.surface_ml:.1f} ml (segment {plaus.segment_ml:.1f} ml, "
                      f"{100 * plaus.segment_inside_fraction:.0f} % of it inside)")
+    if plaus is not None and getattr(plaus, "unsupported_pieces", 0):
+        n = plaus.unsupported_pieces
+        parts.append(f"left out {n} part{'s' if n > 1 else ''} of the segment that the CT shows "
+                     f"as soft tissue ({plaus.unsupported_segment_ml:.1f} ml)")
     cap = getattr(pipeline, "cap", None) or {}
     if cap.get("area_mm2"):
         parts.append(f"capped at the image border ({cap['area_mm2']:.0f} mm^2)")

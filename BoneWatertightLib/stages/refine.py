@@ -109,7 +109,7 @@ def contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast=MIN
 def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
                     max_shift=MAX_SHIFT_MM, min_contrast=MIN_CONTRAST_HU,
                     smoothness=REFINE_ALPHA, damping=REFINE_BETA, passes=REFINE_PASSES,
-                    allowed=None, progress=None):
+                    allowed=None, progress=None, plate_targets=None):
     """Move each vertex along its normal to the CT profile's edge at ``edge_level``.
 
     Repeats :func:`refine_pass` (vertices held back by the back-off get another chance once
@@ -138,6 +138,10 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         not); targets elsewhere are dropped.
     progress : callable, optional
         progress(fraction, message) after each pass.
+    plate_targets : callable, optional
+        (vertices (n, 3), normals (n, 3)) -> (n,) shift along the normal (mm) onto a thin
+        plate's face, NaN where none (:meth:`.plates.Plates.targets`): the target of the
+        vertices whose profile shows no edge.
 
     Returns
     -------
@@ -160,7 +164,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
     for i in range(passes):
         v, _, found, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
                                       smoothness, damping, ops=ops, edge_level=edge_level,
-                                      allowed=allowed)
+                                      allowed=allowed, plate_targets=plate_targets)
         frac = float(found.mean())
         if progress:
             progress((i + 1) / (passes + VERIFY_ROUNDS), f"edge refinement {i + 1}/{passes}")
@@ -183,7 +187,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
             break
         v, _, _, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
                                   smoothness, damping, ops=ops, edge_level=edge_level,
-                                  allowed=allowed)
+                                  allowed=allowed, plate_targets=plate_targets)
         if not ok:
             v = clean
             break
@@ -195,7 +199,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
 
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
                 min_contrast=MIN_CONTRAST_HU, smoothness=REFINE_ALPHA, damping=REFINE_BETA, ops=None,
-                edge_level=None, allowed=None):
+                edge_level=None, allowed=None, plate_targets=None):
     """Return (new vertices, per-vertex shift along the normal, edge found (n,) bool, ok).
 
     The edge points are soft targets of one regularised Laplacian step (as in the deformation)
@@ -227,6 +231,12 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
     ok = has & np.isfinite(valley) & (peak - valley >= min_contrast) & (peak >= ht)
     shift = np.where(ok, np.clip(t_cross, -max_shift, max_shift), 0.0)
     w = ok.astype(np.float64)
+    if plate_targets is not None:
+        # No edge on the profile, but a plate thinner than the CT resolves: its model's face.
+        plate = plate_targets(vertices, n)
+        use = ~ok & np.isfinite(plate)
+        shift = np.where(use, np.clip(np.nan_to_num(plate), -max_shift, max_shift), shift)
+        w[use] = 1.0
     if ops is None:
         L = laplacian(len(vertices), faces)
         ops = ((L.T @ L).tocsr(), (sp.identity(len(vertices), format="csr") - L).tocsr())

@@ -100,7 +100,7 @@ def segment_region(segment: np.ndarray, spacing: float, close_mm: float = REGION
 
 def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.ndarray,
                k: int, spacing: float, *, h0: float, theta_max: float, coarseness: float,
-               opening: int, closing: int) -> BoneMasks:
+               opening: int, closing: int, unsupported: np.ndarray = None) -> BoneMasks:
     """W_H0, W_HT and their solid versions for bone k (label index ``k``).
 
     Parameters
@@ -120,6 +120,9 @@ def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.
         twice this are closed (partial volume breaks thin cortex on thick slices).
     opening, closing : int
         l and n of the paper.
+    unsupported : (z, y, x) bool array, optional
+        Parts of the labels that the CT shows to be soft tissue (:func:`.ownership.unsupported_parts`):
+        the label-restricted closing does not fill them.
     """
     owned_all = owner == k
     core_all = cores == k
@@ -132,7 +135,8 @@ def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.
     r = max(1, int(round(coarseness / spacing)))
     closed = ndimage.binary_closing(np.pad(owned | core, r + 1), structure=SIX,
                                     iterations=r)[r + 1:-r - 1, r + 1:-r - 1, r + 1:-r - 1]
-    owned = owned | (closed & lab_k & (owner[box] == 0))
+    trusted = lab_k if unsupported is None else lab_k & ~unsupported[box]
+    owned = owned | (closed & trusted & (owner[box] == 0))
     w_h0 = _open_close((owned & strong) | core, opening, closing)
     w_ht = _open_close(owned | core, opening, closing) | w_h0
     solid_h0 = solidify(w_h0, spacing)
