@@ -40,8 +40,8 @@ from .mesh.operators import sample_field
 from .mesh.surface import Surface, enclosed_volume, mean_edge_length, surface_area
 from .params import Parameters
 from .progress import Progress, ProgressCallback
-from .report import (Counts, DistanceSummary, JointReport, PairReport, PipelineReport,
-                     Refinement, StageTimes, constants_of)
+from .report import (Counts, DistanceSummary, FallbackLog, JointReport, PairReport,
+                     PipelineReport, Refinement, StageTimes, constants_of)
 from .stages import autothreshold as _auto, contacts as _contacts, deform as _deform
 from .stages import filtering as _filtering, ownership as _ownership, plausibility as _plaus
 from .stages import poisson as _poisson, prepare as _prepare, refine as _refine
@@ -214,6 +214,7 @@ class BoneWork:
     history: list = field(default_factory=list)
     refinement: Refinement = field(default_factory=Refinement)
     contacts: dict = field(default_factory=dict)
+    fallbacks: FallbackLog = field(default_factory=FallbackLog)  # what fell back, and where
 
     @property
     def faces(self) -> np.ndarray:
@@ -260,12 +261,13 @@ class Workspace:
 @dataclass
 class _Run:
     """One call of :func:`reconstruct_many`: parameters, progress, the shared stage times and
-    the bones that failed ({label index: error})."""
+    fallbacks, and the bones that failed ({label index: error})."""
 
     params: Parameters
     progress: Progress
     keep_going: bool
     times: StageTimes = field(default_factory=StageTimes)
+    fallbacks: FallbackLog = field(default_factory=FallbackLog)
     failed: dict = field(default_factory=dict)
 
     def stage(self, name: str) -> Progress:
@@ -356,7 +358,8 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     report = JointReport(
         version=__version__, parameters=run.params.to_dict(), input=ws.prep.info,
         thresholds=ws.thresholds, ownership=_ownership_info(ws), pairs=pairs,
-        timings=run.times, neighbours=[str(ws.names.get(v, v)) for v in ws.neighbour_values])
+        timings=run.times, neighbours=[str(ws.names.get(v, v)) for v in ws.neighbour_values],
+        fallbacks=list(run.fallbacks))
     run.progress(1.0, "done")
     return JointResult(bones=results, pairs=pairs, report=report)
 
@@ -404,7 +407,7 @@ def threshold_stage(run: _Run, ws: Workspace) -> None:
     nct, nlab, nsp = prep.native
     values = [prep.values[t - 1] for t in prep.targets]
     c = prep.coarseness
-    estimate = auto_thresholds(nct, nlab, values, nsp, c, params.theta_max) \
+    estimate = auto_thresholds(nct, nlab, values, nsp, c, params.theta_max, run.fallbacks) \
         if (params.h0 is None or params.ht is None) else None
     h0 = params.h0 if params.h0 is not None else estimate["h0"]
     ht = params.ht if params.ht is not None else estimate["ht"]
@@ -416,7 +419,8 @@ def threshold_stage(run: _Run, ws: Workspace) -> None:
     if estimate is not None:
         soft, cortex = estimate["soft_tissue"], estimate["cortex"]
     else:
-        soft, cortex = _auto.tissue_levels(nct, np.isin(nlab, values), nlab > 0, nsp, c)
+        soft, cortex = _auto.tissue_levels(nct, np.isin(nlab, values), nlab > 0, nsp, c,
+                                           run.fallbacks)
     ws.h0, ws.ht = h0, ht
     ws.thresholds = {"h0": float(h0), "ht": float(ht), "theta_max": float(params.theta_max),
                      "h0_auto": params.h0 is None, "ht_auto": params.ht is None,
@@ -462,7 +466,8 @@ def threshold_windows(run: _Run, ws: Workspace, bone: BoneWork) -> None:
     with timed(bone.times, "threshold"):
         bone.masks = bone_masks(ws.ct_f, own.owner, own.cores, ws.labels, bone.k, d, h0=ws.h0,
                                 theta_max=params.theta_max, coarseness=ws.prep.coarseness,
-                                opening=params.opening, closing=params.closing)
+                                opening=params.opening, closing=params.closing,
+                                fallbacks=bone.fallbacks)
         step_voxels = max(1, int(round(min(ws.prep.ct_spacing) / d)))
         bone.separation = erosions_to_separate(ws.ct_f, own.owner, bone.k, d, h0=ws.h0,
                                                theta_max=params.theta_max,
@@ -490,7 +495,7 @@ def visible_points_of(run: _Run, ws: Workspace, bone: BoneWork,
     bone.visible_all = candidates[every] + masks.origin     # S(P_H0) of B*: all of them
     # B* = S(P_H0) U (P_HT - P_H0); of P_HT - P_H0 only the outer boundary can be reached by
     # the directional search, placed sub-voxel where the CT crosses HT.
-    b_ht = crossing_points(ws.ct_f[masks.box], masks.occupancy, ws.ht, d)
+    b_ht, crossed = crossing_points(ws.ct_f[masks.box], masks.occupancy, ws.ht, d, crossed=True)
     # Of P_HT - P_H0 the deformation needs the bone that W_H0 misses (low-density bone, a
     # cortex below H0): HT crossings more than HT_BEYOND_H0_MM beyond W_H0. Nearer ones are the
     # partial-volume foot of dense cortex, which would only pull the surface outward.
@@ -498,7 +503,12 @@ def visible_points_of(run: _Run, ws: Workspace, bone: BoneWork,
         from .mesh.distance import distance_outside
 
         gap_to_h0 = distance_outside(masks.w_h0) * d
-        b_ht = b_ht[sample_field(gap_to_h0, b_ht, d) > HT_BEYOND_H0_MM]
+        keep = sample_field(gap_to_h0, b_ht, d) > HT_BEYOND_H0_MM
+        b_ht, crossed = b_ht[keep], crossed[keep]
+    if not crossed.all():
+        bone.fallbacks.add("visible", "HT points of B* where the CT does not cross HT between "
+                           "the boundary voxel and its outside neighbour: placed mid-edge "
+                           "(t = 0.5)", int((~crossed).sum()), "points")
     bone.b_ht = b_ht + masks.origin
     return candidates[vis_idx]
 
@@ -580,9 +590,12 @@ def deform(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
                             mean_edge_length(m0.vertices, m0.faces),
                             iterations=params.iterations, alpha=params.alpha, beta=params.beta,
                             search_radius=params.search_radius,
-                            search_offset=params.search_offset)
+                            search_offset=params.search_offset, fallbacks=bone.fallbacks)
         verts = deformer.run(progress=progress) + origin
         bone.history = deformer.history
+    elif params.iterations > 0:
+        bone.fallbacks.add("deform", "no constraint point on the bone's side of its joints: "
+                           "M0 is kept undeformed", params.iterations, "iterations")
     bone.deformed = verts
     bone.vertices = verts
 
@@ -593,7 +606,7 @@ def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
     before = bone.vertices
     verts, shift, frac, found = refine_to_edges(before, bone.faces, ws.ct_smooth, d, ws.ht,
                                                 edge_level=params.edge_level, allowed=allowed,
-                                                progress=progress)
+                                                progress=progress, fallbacks=bone.fallbacks)
     # Edge support on the free surface: where the bone touches another one (no joint space
     # on the CT) no edge is expected.
     free = np.ones(len(verts), bool)
@@ -601,7 +614,9 @@ def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
         free = sample_field(bone.others_distance, before - bone.masks.origin, d,
                             cval=1e3) > FREE_SURFACE_MM
     support = float(found[free].mean()) if free.any() else float(found.mean())
-    bone.refinement = Refinement(applied=True, fraction_with_edge=support,
+    # Applied: some of the refinement survived its checks (else the input came back).
+    bone.refinement = Refinement(applied=not np.array_equal(verts, before),
+                                 fraction_with_edge=support,
                                  mean_shift_mm=float(shift.mean()),
                                  mean_abs_shift_mm=float(np.abs(shift).mean()))
     bone.vertices = verts
@@ -618,19 +633,26 @@ def contact_stage(run: _Run, ws: Workspace, bones: dict) -> None:
             return
         surfaces = {k: [b.vertices, b.faces] for k, b in bones.items()}
         history = _resolve_with_retries(surfaces, ws.fixed, ws.labels.shape, ws.d,
-                                        run.params.min_gap, sub)
+                                        run.params.min_gap, sub,
+                                        {k: b.fallbacks for k, b in bones.items()},
+                                        {k: b.name for k, b in bones.items()})
         for k, b in bones.items():
             b.vertices = surfaces[k][0]
             b.contacts = {"passes": [{"moved": rec[k][0], "still_closer_than_gap": rec[k][1]}
                                      for rec in history if k in rec]}
+            discarded = sum(rec[k][2] for rec in history if k in rec)
+            if discarded:
+                b.fallbacks.add("contacts", "a contact pass failed the self-intersection check: "
+                                "its moves were discarded", discarded, "vertices")
 
 
 def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, min_gap: float,
-                          progress: Progress) -> list:
+                          progress: Progress, fallbacks: dict, names: dict) -> list:
     """stages.contacts.resolve_contacts on ``surfaces`` ({key: [vertices, faces]}, updated
     in place); the fields are voxel-accurate and the exact test decides: pairs that still
     cross get more passes with a wider margin, and a sub-voxel sliver left after those is
-    moved apart exactly. Returns the passes' records."""
+    moved apart exactly. Both are noted in ``fallbacks`` ({key: FallbackLog}; ``names``:
+    {key: name}). Returns the passes' records."""
     history = _contacts.resolve_contacts(surfaces, fixed, shape, d, min_gap,
                                          progress=progress.stage(0.0, 0.6))
     for extra in range(1, CONTACT_RETRIES + 1):
@@ -638,6 +660,11 @@ def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, m
         if not crossing:
             break
         involved = {k for pair in crossing for k in pair}
+        for a, b in crossing:
+            for k, other in ((a, b), (b, a)):
+                fallbacks[k].add("contacts", "the surfaces still crossed after the contact "
+                                 "passes: more passes with a wider margin", 1, "passes",
+                                 f"with {names[other]}")
         others = dict(fixed)
         for k in surfaces:
             if k not in involved:
@@ -650,6 +677,11 @@ def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, m
         for a, b in _crossing_pairs(surfaces):
             va, vb, _ = _contacts.push_apart_exact(surfaces[a][0], surfaces[a][1],
                                                   surfaces[b][0], surfaces[b][1], d)
+            for k, other, new in ((a, b, va), (b, a, vb)):
+                fallbacks[k].add("contacts", "a sub-voxel crossing left after the field passes "
+                                 "was moved apart exactly (last resort)",
+                                 int(np.any(new != surfaces[k][0], axis=1).sum()), "vertices",
+                                 f"with {names[other]}")
             surfaces[a][0], surfaces[b][0] = va, vb
     return history
 
@@ -660,7 +692,8 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
     name, grid = bone.name, ws.prep.grid
     planes = ws.prep.caps.get(bone.k, [])
     with timed(bone.times, "cap"):
-        verts, faces, flags, cap_area = cap_bone(bone.vertices, bone.faces, planes)
+        verts, faces, flags, cap_area = cap_bone(bone.vertices, bone.faces, planes,
+                                                 bone.fallbacks)
     progress(0.3, f"{name}: checks")
     with timed(bone.times, "checks"):
         phys = grid.grid_to_physical(verts)
@@ -689,14 +722,16 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
                                 label=ws.value_of(bone.k), name=name)
 
 
-def cap_bone(vertices: np.ndarray, faces: np.ndarray, planes: list) -> tuple:
+def cap_bone(vertices: np.ndarray, faces: np.ndarray, planes: list,
+             fallbacks: Optional[FallbackLog] = None) -> tuple:
     """(vertices, faces, cap flags (m,) uint8, cap area mm^2): the surface clipped and capped
     at each plane where the image cuts the bone (mesh.cap)."""
     flags = np.zeros(len(faces), np.uint8)
     area = 0.0
     for plane in planes:
         vertices, faces, flags, a = cap_plane(vertices, faces, flags, plane.axis, plane.side,
-                                              plane.position, mean_edge_length(vertices, faces))
+                                              plane.position, mean_edge_length(vertices, faces),
+                                              fallbacks)
         area += a
     return vertices, faces, flags, area
 
@@ -777,7 +812,8 @@ def bone_report(run: _Run, ws: Workspace, bone: BoneWork, checks, phys, faces, d
         separation={"erosions_to_separate": sep,
                     "by": ("threshold" if sep == 0 else f"erosion ({sep} CT voxels)" if sep
                            else "competition at the CT's valley and the labels")},
-        cap=cap, contacts=bone.contacts, plausibility=plaus, warnings=warnings)
+        cap=cap, contacts=bone.contacts, plausibility=plaus, warnings=warnings,
+        fallbacks=list(run.fallbacks) + list(bone.fallbacks))
 
 
 def _intermediates(run: _Run, ws: Workspace, bone: BoneWork) -> dict:

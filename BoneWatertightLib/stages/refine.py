@@ -109,7 +109,7 @@ def contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast=MIN
 def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
                     max_shift=MAX_SHIFT_MM, min_contrast=MIN_CONTRAST_HU,
                     smoothness=REFINE_ALPHA, damping=REFINE_BETA, passes=REFINE_PASSES,
-                    allowed=None, progress=None):
+                    allowed=None, progress=None, fallbacks=None):
     """Move each vertex along its normal to the CT profile's edge at ``edge_level``.
 
     Repeats :func:`refine_pass` (vertices held back by the back-off get another chance once
@@ -138,6 +138,9 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         not); targets elsewhere are dropped.
     progress : callable, optional
         progress(fraction, message) after each pass.
+    fallbacks : BoneWatertightLib.report.FallbackLog, optional
+        Notes every step that fell back (the automatic level, a pass or verification round
+        whose result was discarded, vertices held at their verified position).
 
     Returns
     -------
@@ -152,19 +155,29 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
     v = vertices
     frac = 0.0
     found = np.zeros(len(vertices), bool)
+
+    def note(what, count, unit, where=""):
+        if fallbacks is not None:
+            fallbacks.add("refine", what, count, unit, where)
+
     if edge_level is None:
         reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast)
         edge_level = 0.5 if not np.isfinite(reference) else ("slab", reference)
+        if edge_level == 0.5:
+            note("no profile has a cortical contrast for the automatic edge level: the half "
+                 "maximum (0.5) is used", 1, "")
     L = laplacian(len(vertices), faces)
     ops = ((L.T @ L).tocsr(), (sp.identity(len(vertices), format="csr") - L).tocsr())
     for i in range(passes):
         v, _, found, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
                                       smoothness, damping, ops=ops, edge_level=edge_level,
-                                      allowed=allowed)
+                                      allowed=allowed, fallbacks=fallbacks)
         frac = float(found.mean())
         if progress:
             progress((i + 1) / (passes + VERIFY_ROUNDS), f"edge refinement {i + 1}/{passes}")
         if not ok:
+            note("the flip back-off gave up: the later passes were skipped", passes - 1 - i,
+                 "passes", f"pass {i + 1}")
             break
     # Passes check only for flips; the exact self-intersection test runs against the verified
     # input surface. Vertices it puts back get another pass (they would stand out as spikes
@@ -175,6 +188,10 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
             progress((passes + r) / (passes + VERIFY_ROUNDS), "edge refinement: verifying")
         checked, ok, _ = safe_update(clean, v, faces)
         if not ok:
+            note("the unrefined surface is kept: the refined one failed the self-intersection "
+                 "check" if r == 0 else "a re-refinement failed the self-intersection check: "
+                 "the surface verified before it is kept",
+                 int(np.any(v != clean, axis=1).sum()), "vertices", f"round {r + 1}")
             v = clean
             break
         reverted = np.any(checked != v, axis=1)
@@ -183,11 +200,16 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
             break
         v, _, _, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
                                   smoothness, damping, ops=ops, edge_level=edge_level,
-                                  allowed=allowed)
+                                  allowed=allowed, fallbacks=fallbacks)
         if not ok:
+            note("the re-refinement of the vertices the check put back was reverted (the flip "
+                 "back-off gave up)", int(reverted.sum()), "vertices", f"round {r + 1}")
             v = clean
             break
     else:
+        note("vertices still put back by the self-intersection check after "
+             f"{VERIFY_ROUNDS} rounds keep their verified position",
+             int(np.any(v != clean, axis=1).sum()), "vertices")
         v = clean
     n = vertex_normals(vertices, faces)
     return v, np.einsum("ij,ij->i", v - vertices, n), frac, found
@@ -195,7 +217,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
 
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
                 min_contrast=MIN_CONTRAST_HU, smoothness=REFINE_ALPHA, damping=REFINE_BETA, ops=None,
-                edge_level=None, allowed=None):
+                edge_level=None, allowed=None, fallbacks=None):
     """Return (new vertices, per-vertex shift along the normal, edge found (n,) bool, ok).
 
     The edge points are soft targets of one regularised Laplacian step (as in the deformation)
@@ -240,7 +262,7 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
         w[~allowed(targets)] = 0.0
     A = (smoothness * LtL + sp.diags(w + damping)).tocsr()
     rhs = w[:, None] * targets + smoothness * (LtL @ vertices) + damping * vertices
-    new = solve_spd(A, rhs, vertices)
+    new = solve_spd(A, rhs, vertices, fallbacks, "refine")
     new, safe, _ = safe_update(vertices, new, faces, intersections=False)
     moved = np.einsum("ij,ij->i", new - vertices, n)
     return new, moved, ok, safe
