@@ -42,8 +42,11 @@ PLATE_SHEETNESS = 0.5
 # The profile across the plate is read within +- PLATE_WINDOW x the CT's resolution along the
 # normal (the blur of a thin plate spreads about that far).
 PLATE_WINDOW = 1.5
-# A plate is thinner than PLATE_MAX_RESOLUTION x the CT's resolution along its normal.
+# A plate is thinner than PLATE_MAX_RESOLUTION x the CT's resolution along its normal, and holds
+# at least as much bone as a cortex PLATE_MIN_MM thick: a ridge with less mass under it is
+# soft tissue's texture or noise (the thinnest cortical plates are 0.2-0.3 mm).
 PLATE_MAX_RESOLUTION = 1.0
+PLATE_MIN_MM = 0.15
 # A ridge stands at least PLATE_NOISE_FACTOR x the noise of the smoothed CT above its local
 # background (the noise measured in the soft tissue within SOFT_WINDOW_HU of its level).
 PLATE_NOISE_FACTOR = 4.0
@@ -343,6 +346,6 @@ def _ridges(sm, idx, d, native, cortex, min_contrast):
     mass = np.sum(np.where(between, np.clip(prof - bg[:, None], 0.0, None), 0.0), axis=1) * step
     w = mass / np.maximum(cortex - bg, 1.0)
     contrast = peak - bg
-    keep = (contrast >= min_contrast) & (w > 0) & (w < PLATE_MAX_RESOLUTION * res)
+    keep = (contrast >= min_contrast) & (w >= PLATE_MIN_MM) & (w < PLATE_MAX_RESOLUTION * res)
     return idx[keep], pts[keep], e[keep], w[keep], contrast[keep]
 
