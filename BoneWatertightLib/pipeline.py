@@ -857,7 +857,8 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
         band_mm=ws.band, edge_support=float("nan") if frac is None else frac,
         owned=own.owner[box] == k,
         unsupported=None if own.unsupported is None else own.unsupported[box],
-        unsupported_pieces=len(own.info.get("unsupported", {}).get(k, [])))
+        unsupported_pieces=len(own.info.get("unsupported", {}).get(k, [])),
+        unlabelled=None if own.merged is None else own.merged[box] & (own.owner[box] == k))
     _plaus.gate(plaus, coarseness=ws.prep.coarseness, band_mm=ws.band, name=bone.name)
     return plaus, box, seg_all[box]
 

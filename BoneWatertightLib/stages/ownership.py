@@ -87,6 +87,8 @@ class Ownership:
     ``cores``: label index of the core (0 none). ``regions``: label index -> (slices, bool
     region within those slices).
     ``foreground``: F. ``contacts``: list of per-pair contact records (see module doc).
+    ``unsupported``: the labels' parts that the CT shows to be soft tissue (no core, not bone).
+    ``merged``: the unlabelled bone merged into a bone (step 4), or None.
     """
 
     owner: np.ndarray
@@ -97,6 +99,7 @@ class Ownership:
     contacts: list = field(default_factory=list)
     info: dict = field(default_factory=dict)
     unsupported: np.ndarray = None
+    merged: np.ndarray = None
 
 
 def unsupported_parts(ct: np.ndarray, label: np.ndarray, core: np.ndarray, spacing: float, *,
@@ -420,6 +423,8 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         owner[own] = i
     merged_ids = {p for p, _, _, _ in merged}
     owner[(ws >= other) & ~np.isin(ws, list(merged_ids)) & (owner == 0)] = other
+    taken = np.isin(ws, list(merged_ids)) & (owner > 0) if merged_ids else None
+    merged_ml = {p: float((ws == p).sum() * spacing ** 3 / 1000.0) for p in merged_ids}
     # Per-pair contacts, other-bone pieces pooled.
     pooled: dict = {}
     for (a, b), (tot, vis) in faces.items():
@@ -439,8 +444,9 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             "joint_space_voxels": int(joint_space.sum()),
             "unsupported": {int(k): v for k, v in unsupported_info.items()},
             "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
-                                   "contact_mm2": round(s, 1)} for p, a, f, s in merged]}
+                                   "contact_mm2": round(s, 1), "ml": round(merged_ml[p], 2)}
+                                  for p, a, f, s in merged]}
     if progress:
         progress(1.0, "ownership done")
     return Ownership(owner=owner, cores=cores, regions=regions, foreground=fg, other=other,
-                     contacts=contacts, info=info, unsupported=unsupported)
+                     contacts=contacts, info=info, unsupported=unsupported, merged=taken)

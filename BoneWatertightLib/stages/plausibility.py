@@ -47,6 +47,12 @@ UNTOUCHED_BONE_SHARE = 0.5
 UNTOUCHED_MIN_ML = 1.0
 MAX_UNTOUCHED_FRACTION = 0.15
 MAX_EXTRA_FRACTION = 0.25
+# Unlabelled bone that touched the bone without a visible joint space and was merged into it
+# (a bitten-off end of a rough segment, or a neighbour fused across a joint the CT does not
+# resolve): more than MAX_UNLABELLED_FRACTION of the surface's volume and UNLABELLED_MIN_ML
+# fails the run (label that bone, or extend the segment).
+MAX_UNLABELLED_FRACTION = 0.03
+UNLABELLED_MIN_ML = 1.0
 MAX_CORE_OVERLAP = 0.02
 MIN_EDGE_SUPPORT = 0.5
 # The comparison runs on blocks of about this size (mm).
@@ -83,6 +89,7 @@ class Plausibility:
     untouched_bone_ml: float = 0.0
     unsupported_segment_ml: float = 0.0
     unsupported_pieces: int = 0
+    unlabelled_bone_ml: float = 0.0
     segment_genus: int | None = None
     bounds: dict = field(default_factory=dict)
     problems: list = field(default_factory=list)
@@ -97,7 +104,8 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
             neighbour_cores: np.ndarray, in_image: np.ndarray, spacing: float, *,
             volume_mm3: float, coarseness: float, band_mm: float,
             edge_support: float, owned: np.ndarray | None = None,
-            unsupported: np.ndarray | None = None, unsupported_pieces: int = 0) -> Plausibility:
+            unsupported: np.ndarray | None = None, unsupported_pieces: int = 0,
+            unlabelled: np.ndarray | None = None) -> Plausibility:
     """Compare a surface with its segment on a box of the working grid.
 
     Parameters
@@ -123,8 +131,15 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         Parts of the segment that the CT shows to be soft tissue (left out of the bone by
         :func:`.ownership.unsupported_parts`): not counted as missing, reported in ml with
         ``unsupported_pieces`` (their number).
+    unlabelled : (z, y, x) bool array, optional
+        Bone outside every segment that touched this bone without a joint space and was
+        merged into it (:attr:`.ownership.Ownership.merged`): how much of it the surface holds
+        is ``unlabelled_bone_ml``.
     """
     unsupported_ml = 0.0
+    unlabelled_ml = 0.0
+    if unlabelled is not None:
+        unlabelled_ml = float((unlabelled & inside).sum() * spacing ** 3 / 1000.0)
     if unsupported is not None:
         unsupported = unsupported & label & in_image
         unsupported_ml = float(unsupported.sum() * spacing ** 3 / 1000.0)
@@ -183,7 +198,8 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         edge_support=float(edge_support),
         untouched_segment_ml=float(islands.sum() * voxel / 1000.0),
         untouched_bone_ml=float(left_out.sum() * voxel / 1000.0),
-        unsupported_segment_ml=unsupported_ml, unsupported_pieces=int(unsupported_pieces))
+        unsupported_segment_ml=unsupported_ml, unsupported_pieces=int(unsupported_pieces),
+        unlabelled_bone_ml=unlabelled_ml)
     return p
 
 
@@ -199,6 +215,7 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str) -> Pl
     """Fill ``p.bounds`` and ``p.problems`` (each problem says what is wrong and what to do)."""
     max_exc = band_mm + EXCURSION_COARSENESS * coarseness + EXCURSION_MM
     p.bounds = {"missing_fraction_max": MAX_MISSING_FRACTION,
+                "unlabelled_fraction_max": MAX_UNLABELLED_FRACTION,
                 "untouched_fraction_max": MAX_UNTOUCHED_FRACTION,
                 "extra_fraction_max": MAX_EXTRA_FRACTION,
                 "max_excursion_mm": max_exc, "neighbour_core_overlap_max": MAX_CORE_OVERLAP,
@@ -225,6 +242,14 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str) -> Pl
             f"{100 * MAX_EXTRA_FRACTION:.0f} %): it grew into a neighbour or soft tissue. Label "
             "the neighbouring bone (every other label is a neighbour), raise H0, or correct the "
             "segment")
+    unlabelled = p.unlabelled_bone_ml / max(p.surface_ml, 1e-9)
+    if unlabelled > MAX_UNLABELLED_FRACTION and p.unlabelled_bone_ml >= UNLABELLED_MIN_ML:
+        problems.append(
+            f"{name}: {p.unlabelled_bone_ml:.1f} ml ({100 * unlabelled:.0f} % of the surface's "
+            "volume) is bone outside every segment that touches this bone without a joint space "
+            "the CT resolves: the surface has probably fused with an unlabelled neighbouring "
+            "bone. Label that bone (every other label competes as a neighbour), or, if it is "
+            "part of this bone, extend the segment over it")
     if p.max_excursion_mm > max_exc:
         problems.append(
             f"{name}: the surface reaches {p.max_excursion_mm:.1f} mm outside the segment (at most "
