@@ -1,0 +1,881 @@
+"""Anatomical CT phantoms: real bone shapes (TotalSegmentator labels of a real CT), made
+smooth, with thin plates, joint spaces, a cortex of varying thickness and a CT formed from
+them, with the exact truth (issue 18).
+
+    ph = make_anatomical("pelvis_3mm", seed=0)
+    ph.ct, ph.labels, ph.truths[78], ph.names[78], ph.info["plates"]["hip_right"]
+
+Why: the geometric femur phantoms (Testing/phantoms.py) have thick, convex parts. The product
+fails where the CT barely resolves the bone: thin cortical plates, thinner than the voxel,
+blurred to a few hundred HU (iliac wing, sacral ala, transverse processes, scapular blade).
+These phantoms reproduce that physical effect on real shapes, with a known truth.
+
+Frames and arrays
+-----------------
+Everything is built in the **local frame** q (mm): the source label map's index frame times
+its spacing, q = spacing * (i, j, k) (x-y-z). The source's physical LPS position of q is
+``origin_src + D_src @ q``. The **model grid** is an isotropic grid of step ``h``
+(``model_grid`` mm, 0.4-0.5) aligned with q; every bone's fields live on a sub-box (crop) of it.
+The CT grid is aligned with q too; physical LPS = ``x0 + D @ (q - q_ct0)`` with ``D = D_src @
+R(direction_angles_deg)`` and x0 the source's physical position of the first CT voxel: at zero
+angles the phantom lies exactly where the real CT's bones are; with angles the voxel arrays are
+the same and the object is rotated in physical space (as Testing/phantoms.py does). Arrays are
+(z, y, x); point arrays (n, 3) x-y-z in mm.
+
+How a bone is made (:func:`_make_bone`), all on the model grid of step h
+-------------------------------------------------------------------------
+1. **Label -> smooth shape.** The bone's voxels of the 3 mm source label (several label values
+   may form one bone: sacrum = sacrum + S1) as a 0/1 box function, blurred analytically by a
+   Gaussian of ``label_sigma`` mm (the exact blur of the voxel boxes: a tensor product of
+   erf-differences, no resampling) -> P in [0, 1] at the model nodes. Where the source volume
+   cuts a bone (the femur below the lesser trochanter, the ischium), the label's last slice is
+   first repeated for ``extend_mm`` so that the bone ends in a rounded stub inside the phantom.
+2. **SDF.** Nodes with P > 0.5 are inside; the signed Euclidean distance (the ``edt`` package,
+   voxel centres shifted by h / 2 to the voxel faces) smoothed by a Gaussian of h gives sdf0
+   (mm, negative inside, 1-Lipschitz). Its zero set is free of the 3 mm stair steps.
+3. **Seeded geometry perturbation:** sdf0 += ``perturb_mm`` * f(q), f a smooth random field
+   (cubic B-spline lattice, 40 mm spacing, unit std): +-0.3 mm of low-frequency shape change
+   per seed.
+4. **Thin plates** (bones whose kind has ``plate``): the 3 mm labels are 6-9 mm thick where the
+   real bone is a 1-3 mm plate. Local half-thickness R(q) = the largest depth (-sdf0) within a
+   cube of half-width ``r_b + 1`` mm (an upper bound of the inscribed-ball radius, exact up to
+   that width). Plate weight w = 1 - smoothstep(r_a, r_b, R) (1 in plates, 0 in bodies).
+   Distance to the plate's medial surface d_m: from the Gaussian-smoothed SDF
+   D_s = G_sm * sdf0 (sm = ``medial_sigma`` mm): for a plate (SDF = |u| - r, u the coordinate
+   across it) |grad D_s| = erf(|u| / (sm sqrt 2)) exactly, so d_m = sm sqrt(2) erfinv(|grad D_s|)
+   (accurate for |u| < ~2 sm, monotone beyond). Target half-thickness rho(q) = t(q) / 2 with
+   t between the kind's ``plate`` = (t_min, t_max) mm, set by a smooth random field (25 mm
+   lattice) and by R (thinner where the label is thinner). The thinned bone:
+   F = max(sdf0, (1 - w) sdf0 + w (d_m - rho)). Since F >= sdf0 the plate stays inside the
+   label's shape; since d_m - rho = -rho < 0 on the medial surface, the plate never opens a
+   hole (the medial surface stays inside); the plate is 2 rho thick where w = 1 and thickens
+   smoothly into the bodies.
+5. **Joints.** For every pair of bones (a, b) of the case, psi = (sdf0_a - sdf0_b) / 2
+   (1-Lipschitz, zero on their bisector) carves both: F_a = smax(F_a, psi + g'/2),
+   F_b = smax(F_b, -psi + g'/2) (polynomial smooth max, radius 1 mm: rounded joint margins),
+   g' = 1.1 g for the pair's gap g (``joint_gap_mm`` / ``joint_gaps``); so a and b are at least
+   g apart wherever they met, with parallel articular surfaces. The smallest distance of the
+   two truth meshes is measured and stored (``info["joints"]``).
+6. Only the largest component of {F < 0} is kept and enclosed cavities are filled.
+
+**Truth** = the zero set of F: flying edges of F's samples on the model grid (the
+vertices lie exactly on the zero set of F's trilinear interpolant, the triangle interiors
+within ~h^2 / (8 R_curv) of it), faces outward, in physical LPS. ``info["bones"][name]["genus"]``
+is checked against the genus of sdf0's zero set before thinning and carving
+(``genus_smoothed_label``): thinning must not open holes.
+
+HU model and CT formation (:func:`_form_ct`)
+--------------------------------------------
+On a fine grid (the model grid, or every second node of it for CT voxels >= 1.5 mm): the
+background is the real CT of the source (its bones and everything > 120 HU replaced by soft
+tissue at 45 HU, clipped to [-1000, 100], smoothed by one source voxel): the real body outline
+with air outside, subcutaneous and intermuscular fat (-100), muscle and organs (30-60), bowel
+gas. Bone: occupancy o = clip(0.5 - F / w_f, 0, 1) (w_f the fine step: a box anti-aliasing that
+keeps a sub-voxel plate's HU x thickness exact), core o_c = clip(0.5 - (F + t_c) / w_f, 0, 1);
+HU = bg + o (cortex - bg) + o_c (trabecular - cortex). Cortex thickness t_c: the kind's
+``cortex`` mm times (1 + 0.35 f), clipped to [0.3, 3] (a plate thinner than 2 t_c is all cortex);
+cortex HU 1000-1800 (kind's mean + 220 f); trabecular HU (kind's mean + 50 f + 35 texture,
+~100-350, +60 just under the cortex); f smooth random fields (seeded), texture a 2 mm lattice.
+Between two bones of a pair, where F_a + F_b < L (L = g + 1 mm; a vertebral disc: 10 mm) the
+space is cartilage (100-140 HU) or disc (70-100 HU). The fine image is blurred and sampled in
+one linear operator per axis: in-plane the pixel aperture (box of the pixel size) convolved
+with a Gaussian PSF (``psf_sigma``), along z the slice profile (box of ``slice_thickness``
+convolved with a Gaussian of 0.15 x thickness); then Gaussian noise (``noise`` HU), int16.
+
+**Labels** (AI-style, :func:`labels_ai`): majority vote of the truths (trilinear F < 0) over
+3 x 3 x 3 points in every voxel of a coarse grid (``label_grid`` mm, random phase), then
+nearest-neighbour onto the CT grid; optionally ``steal_mm``: voxels of one bone within that
+distance of another given to the other.
+
+Random streams: seeded by ``[seed, stream, bone index]``: geometry perturbation (1), plate
+thickness field (2), HU fields (3), CT noise (4), label grid phase (5). Held-out seeds change
+every one of them.
+
+The source data is ``../shared/data`` (beside the repository; ``BONEWATERTIGHT_DATA``
+overrides). Without it :class:`DataMissing` is raised (tests skip); the ``sample_*`` cases use
+the bundled ``Resources/SampleData/lumbar_spine_3mm`` (L3, L4) and always work.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import SimpleITK as sitk
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+for _p in (ROOT, HERE):
+    if _p not in sys.path:
+        sys.path.insert(0, _p)
+
+from BoneWatertightLib.mesh import Surface  # noqa: E402
+
+# ---------------------------------------------------------------------------- data
+
+SAMPLE_DIR = os.path.join(ROOT, "Resources", "SampleData", "lumbar_spine_3mm")
+
+
+def data_dir() -> str:
+    """Folder of the real CT data: $BONEWATERTIGHT_DATA, else ../shared/data beside the
+    repository (a worktree or the main checkout), else /work/shared/data."""
+    env = os.environ.get("BONEWATERTIGHT_DATA")
+    if env:
+        return env
+    for cand in (os.path.join(ROOT, "..", "shared", "data"), "/work/shared/data"):
+        if os.path.isdir(cand):
+            return os.path.abspath(cand)
+    return os.path.abspath(os.path.join(ROOT, "..", "shared", "data"))
+
+
+class DataMissing(FileNotFoundError):
+    """The real CT / reference labels a case is made from are not on this machine."""
+
+
+# Source volumes: (folder or None for the bundled sample, CT file, label file).
+SOURCES = {
+    "pelvis": ("ts_example_ct_abdomen_pelvis_3mm", "ct.nrrd", "bones_labels.nrrd"),
+    "sample": (None, "ct.nrrd", "labels.nrrd"),
+}
+
+
+def _source_paths(source: str):
+    folder, ct, lab = SOURCES[source]
+    base = SAMPLE_DIR if folder is None else os.path.join(data_dir(), folder)
+    paths = os.path.join(base, ct), os.path.join(base, lab)
+    missing = [p for p in paths if not os.path.exists(p)]
+    if missing:
+        raise DataMissing(
+            f"anatomical phantoms need the real CT data: {', '.join(missing)} not found. "
+            f"Put the shared data folder at {data_dir()} (or set BONEWATERTIGHT_DATA); the "
+            f"'sample_*' cases use the bundled Resources/SampleData instead.")
+    return paths
+
+
+def data_available(source: str = "pelvis") -> bool:
+    try:
+        _source_paths(source)
+        return True
+    except DataMissing:
+        return False
+
+
+# ---------------------------------------------------------------------------- bones and cases
+
+# Bone kinds. plate: (t_min, t_max) mm of the thinned plates, or None (no thinning); r_a / r_b:
+# local half-thickness (mm) of the smoothed label below which the bone is a plate (w = 1) /
+# above which it is left as it is (w = 0); cortex: mean cortical thickness (mm) outside the
+# plates; cortex_hu / trab_hu: mean HU.
+KINDS = {
+    "hip": dict(plate=(0.6, 2.6), r_a=4.5, r_b=6.5, cortex=1.1, cortex_hu=1350.0, trab_hu=230.0),
+    "sacrum": dict(plate=(0.8, 3.0), r_a=2.8, r_b=4.2, cortex=0.6, cortex_hu=1200.0, trab_hu=150.0),
+    "femur": dict(plate=None, r_a=0.0, r_b=0.0, cortex=1.8, cortex_hu=1450.0, trab_hu=260.0),
+    "vertebra": dict(plate=(1.0, 3.0), r_a=2.6, r_b=4.0, cortex=0.7, cortex_hu=1250.0, trab_hu=190.0),
+    "scapula": dict(plate=(0.6, 2.2), r_a=2.6, r_b=4.2, cortex=0.9, cortex_hu=1350.0, trab_hu=220.0),
+    "humerus": dict(plate=None, r_a=0.0, r_b=0.0, cortex=1.6, cortex_hu=1450.0, trab_hu=240.0),
+}
+
+# Bones of the sources: label values forming the bone (the first is the phantom's label value,
+# the TotalSegmentator id), kind, and how far (mm) to extend a bone the source volume cuts.
+BONES = {
+    "hip_right": dict(values=(78,), kind="hip", extend_mm=6.0),
+    "hip_left": dict(values=(77,), kind="hip", extend_mm=6.0),
+    "sacrum": dict(values=(25, 26), kind="sacrum", extend_mm=0.0),
+    "femur_right": dict(values=(76,), kind="femur", extend_mm=24.0),
+    "femur_left": dict(values=(75,), kind="femur", extend_mm=24.0),
+    "L3": dict(values=(29,), kind="vertebra", extend_mm=0.0),
+    "L4": dict(values=(28,), kind="vertebra", extend_mm=0.0),
+    "L5": dict(values=(27,), kind="vertebra", extend_mm=0.0),
+}
+
+_BASE = dict(
+    source="pelvis",
+    bones=("hip_right", "sacrum", "femur_right"),
+    model_grid=0.5,         # h: step (mm) of the model grid (SDFs, truth, fine CT grid)
+    label_sigma=1.5,        # Gaussian (mm) smoothing the 3 mm label's voxel boxes
+    medial_sigma=1.2,       # Gaussian (mm) of D_s whose gradient gives the medial distance
+    perturb_mm=0.3,         # seeded low-frequency shape change (std, mm)
+    plates=True,            # thin the plates (False: the smoothed label as it is)
+    plate_scale=1.0,        # multiplies every kind's plate thicknesses (t_min, t_max)
+    joint_gap_mm=1.5,       # default joint space between two bones that touch (mm)
+    joint_gaps=None,        # {(bone a, bone b): gap mm} overrides
+    joint_margin_mm=1.0,    # smooth-max radius rounding the joint margins
+    disc_mm=10.0,           # sum of distances below which the space between vertebrae is disc
+    margin_mm=12.0,         # CT field of view: the bones' box plus this
+    pixel=0.7,              # in-plane spacing (mm)
+    slice_spacing=2.5,      # distance between slices (mm)
+    slice_thickness=None,   # None = slice_spacing
+    psf_sigma=0.5,          # in-plane Gaussian PSF (mm), convolved with the pixel aperture
+    noise=25.0,             # Gaussian noise (HU)
+    direction_angles_deg=(0.0, 0.0, 0.0),  # rotations about x, y, z of the image grid
+    label_grid=1.5,         # AI label grid (mm), scalar or (x, y, z)
+    steal_mm=None,          # None or (bone from, bone to, mm): AI label error at a joint
+    cartilage_hu=120.0,
+    disc_hu=85.0,
+)
+
+CASES: dict[str, dict] = {
+    # (a) hip bone + sacrum + proximal femur of the 3 mm pelvis CT, as a fine clinical CT and as
+    # the 3 mm CT itself.
+    "pelvis_0p7x2p5": dict(bones=("hip_right", "sacrum", "femur_right"), pixel=0.7,
+                           slice_spacing=2.5, psf_sigma=0.5, noise=25.0, label_grid=1.5,
+                           joint_gaps={("hip_right", "femur_right"): 2.5,
+                                       ("hip_right", "sacrum"): 1.5}),
+    "pelvis_3mm": dict(bones=("hip_right", "sacrum", "femur_right"), pixel=3.0,
+                       slice_spacing=3.0, psf_sigma=0.6, noise=20.0, label_grid=3.0,
+                       joint_gaps={("hip_right", "femur_right"): 2.5,
+                                   ("hip_right", "sacrum"): 1.5}),
+    # (b) lumbar L3-L5 (discs, facet joints, transverse processes).
+    "lumbar_3mm": dict(bones=("L3", "L4", "L5"), pixel=3.0, slice_spacing=3.0, psf_sigma=0.6,
+                       noise=20.0, label_grid=3.0, model_grid=0.4, joint_gap_mm=1.5),
+    "lumbar_0p7x2p5": dict(bones=("L3", "L4", "L5"), pixel=0.7, slice_spacing=2.5,
+                           psf_sigma=0.5, noise=25.0, label_grid=1.5, model_grid=0.4,
+                           joint_gap_mm=1.5, direction_angles_deg=(6.0, -4.0, 9.0)),
+    # CI: L3 + L4 of the bundled sample (always available), coarse and quick.
+    "sample_L3L4": dict(source="sample", bones=("L3", "L4"), pixel=1.5, slice_spacing=3.0,
+                        psf_sigma=0.6, noise=15.0, label_grid=3.0, model_grid=0.5,
+                        joint_gap_mm=1.5, margin_mm=8.0),
+}
+
+
+# ---------------------------------------------------------------------------- numerical helpers
+
+def _smoothstep(e0, e1, x):
+    t = np.clip((x - e0) / max(e1 - e0, 1e-9), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _smax(a, b, k):
+    """Polynomial smooth maximum of radius k (>= max(a, b); equal to it where |a - b| > k)."""
+    hh = np.clip(0.5 - 0.5 * (b - a) / k, 0.0, 1.0)
+    return b + (a - b) * hh + k * hh * (1.0 - hh)
+
+
+def _tensor(arr, mz, my, mx):
+    """Apply one matrix per axis to a (z, y, x) array: out[Z, Y, X] = sum mz[Z, z] my[Y, y]
+    mx[X, x] arr[z, y, x] (float32). Used for every separable operation: the analytic blur of
+    label voxels, linear / B-spline interpolation, the CT's PSF and slice profile."""
+    arr = np.asarray(arr, np.float32)
+    t = arr @ np.asarray(mx, np.float32).T                       # (z, y, X)
+    t = np.asarray(my, np.float32)[None] @ t                    # (z, Y, X)
+    nz, ny, nx = t.shape
+    t = (np.asarray(mz, np.float32) @ t.reshape(nz, ny * nx)).reshape(-1, ny, nx)
+    return t
+
+
+def _box_gauss_matrix(x_out, centres, width, sigma, step=None):
+    """(len(x_out), len(centres)): a box of ``width`` at each centre convolved with a Gaussian
+    of ``sigma`` (mm), evaluated at x_out: 0.5 [erf((d + w/2)/(s sqrt 2)) - erf((d - w/2)/(s sqrt 2))].
+    With ``step`` the rows are the weights of a sampled convolution (normalised to sum 1)."""
+    from scipy.special import erf
+
+    d = np.asarray(x_out, float)[:, None] - np.asarray(centres, float)[None, :]
+    s = max(float(sigma), 1e-6) * math.sqrt(2.0)
+    m = 0.5 * (erf((d + 0.5 * width) / s) - erf((d - 0.5 * width) / s))
+    if step is not None:
+        m /= np.maximum(m.sum(axis=1, keepdims=True), 1e-12)
+    return m.astype(np.float32)
+
+
+def _linear_matrix(x_out, x0, step, n):
+    """(len(x_out), n): linear interpolation of samples at x0 + step * i, clamped at the ends."""
+    t = np.clip((np.asarray(x_out, float) - x0) / step, 0.0, n - 1.0)
+    i0 = np.minimum(np.floor(t).astype(int), n - 2) if n > 1 else np.zeros(len(t), int)
+    w = t - i0
+    m = np.zeros((len(t), n), np.float32)
+    r = np.arange(len(t))
+    m[r, i0] += (1.0 - w)
+    if n > 1:
+        m[r, i0 + 1] += w
+    return m
+
+
+def _bspline3(t):
+    t = np.abs(t)
+    return np.where(t < 1.0, 2.0 / 3.0 - t * t + 0.5 * t ** 3,
+                    np.where(t < 2.0, (2.0 - t) ** 3 / 6.0, 0.0))
+
+
+class _Lattice:
+    """Smooth random field of about unit standard deviation over a box: cubic B-spline with
+    N(0, 1) coefficients on a lattice of ``spacing`` mm (correlation length ~ spacing).
+    Evaluated on grids (:meth:`grid`, separable) or at points (:meth:`points`)."""
+
+    # Variance of a cubic B-spline sum of unit-variance coefficients, per axis (mean over phase).
+    _AXIS_VAR = 0.4794
+
+    def __init__(self, rng, lo, hi, spacing):
+        self.s = float(spacing)
+        self.c0 = np.asarray(lo, float) - 1.5 * self.s
+        self.n = np.ceil((np.asarray(hi, float) - self.c0) / self.s).astype(int) + 3
+        self.coef = rng.normal(size=tuple(self.n[::-1])).astype(np.float32)
+        self.norm = float(1.0 / math.sqrt(self._AXIS_VAR ** 3))
+
+    def _matrix(self, axis, x):
+        c = self.c0[axis] + self.s * np.arange(self.n[axis])
+        return _bspline3((np.asarray(x, float)[:, None] - c[None, :]) / self.s).astype(np.float32)
+
+    def grid(self, xs, ys, zs):
+        """Field on the grid xs x ys x zs (q mm) -> (len(zs), len(ys), len(xs)) float32."""
+        return self.norm * _tensor(self.coef, self._matrix(2, zs), self._matrix(1, ys),
+                                   self._matrix(0, xs))
+
+    def points(self, p):
+        """Field at points p (n, 3) q mm -> (n,)."""
+        p = np.asarray(p, float)
+        t = (p - self.c0) / self.s
+        i0 = np.floor(t).astype(int) - 1
+        out = np.zeros(len(p))
+        for a in range(4):
+            wa = _bspline3(t[:, 2] - (i0[:, 2] + a))
+            ia = np.clip(i0[:, 2] + a, 0, self.n[2] - 1)
+            for b in range(4):
+                wb = wa * _bspline3(t[:, 1] - (i0[:, 1] + b))
+                ib = np.clip(i0[:, 1] + b, 0, self.n[1] - 1)
+                for c in range(4):
+                    w = wb * _bspline3(t[:, 0] - (i0[:, 0] + c))
+                    ic = np.clip(i0[:, 0] + c, 0, self.n[0] - 1)
+                    out += w * self.coef[ia, ib, ic]
+        return self.norm * out
+
+
+def _rotation(angles_deg):
+    ax, ay, az = np.radians(angles_deg)
+    rx = np.array([[1, 0, 0], [0, math.cos(ax), -math.sin(ax)], [0, math.sin(ax), math.cos(ax)]])
+    ry = np.array([[math.cos(ay), 0, math.sin(ay)], [0, 1, 0], [-math.sin(ay), 0, math.cos(ay)]])
+    rz = np.array([[math.cos(az), -math.sin(az), 0], [math.sin(az), math.cos(az), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def _peak_mb() -> float:
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+# ---------------------------------------------------------------------------- the model
+
+@dataclass
+class _Bone:
+    """One bone on the model grid: F (z, y, x) float32 on the nodes start + (i, j, k)
+    (x-y-z order of ``start``, model-grid indices), w the plate weight, rho the target
+    half-thickness (mm) of the plates (float16, both on the same nodes)."""
+
+    name: str
+    label: int
+    kind: str
+    start: np.ndarray
+    F: np.ndarray
+    sdf0: np.ndarray | None = None
+    w: np.ndarray | None = None
+    rho: np.ndarray | None = None
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def stop(self):
+        return self.start + np.array(self.F.shape[::-1])
+
+
+class _Model:
+    """Geometry of a case: the source, the model grid, the bones and the frame."""
+
+    def __init__(self, cfg, seed):
+        self.cfg = cfg
+        self.seed = int(seed)
+        self.h = float(cfg["model_grid"])
+        ct_path, lab_path = _source_paths(cfg["source"])
+        self.src_ct = sitk.ReadImage(ct_path)
+        self.src_lab = sitk.ReadImage(lab_path)
+        self.src_spacing = np.array(self.src_lab.GetSpacing(), float)
+        self.src_origin = np.array(self.src_lab.GetOrigin(), float)
+        self.src_dir = np.array(self.src_lab.GetDirection(), float).reshape(3, 3)
+        self.lab = sitk.GetArrayFromImage(self.src_lab)
+        for name in cfg["bones"]:
+            if name not in BONES:
+                raise ValueError(f"unknown bone {name!r}; choose from {', '.join(BONES)}")
+            if not np.isin(self.lab, BONES[name]["values"]).any():
+                raise ValueError(f"bone {name!r} (labels {BONES[name]['values']}) is not in the "
+                                 f"{cfg['source']} label map")
+        self.bones: list[_Bone] = []
+
+    def rng(self, stream, index=0):
+        return np.random.default_rng([self.seed, int(stream), int(index)])
+
+    # frame
+    def node_q(self, idx):
+        """q (mm) of model-grid node indices (n, 3) x-y-z (or per-axis arrays)."""
+        return self.g0 + self.h * np.asarray(idx, float)
+
+    def to_physical(self, q):
+        return (np.asarray(q, float) - self.q_ct0) @ self.direction.T + self.x0
+
+    def to_local(self, x):
+        return (np.asarray(x, float) - self.x0) @ self.direction + self.q_ct0
+
+    def bone(self, name):
+        for b in self.bones:
+            if b.name == name:
+                return b
+        raise KeyError(name)
+
+    def sample_F(self, b: _Bone, q, outside=1e3):
+        """F of bone b at points q (n, 3) by trilinear interpolation of its node values (the
+        function whose zero set the truth is); ``outside`` beyond its crop."""
+        from scipy import ndimage
+
+        t = (np.asarray(q, float) - self.g0) / self.h - b.start  # x-y-z node coordinates
+        return ndimage.map_coordinates(b.F, t[:, ::-1].T, order=1, mode="constant", cval=outside)
+
+
+# ---------------------------------------------------------------------------- bones
+
+def _source_mask(model, name):
+    """The bone's source voxels (z, y, x) bool with the volume-cut sides extended (see module
+    doc, step 1), and the source index (i, j, k) of the extended array's voxel (0, 0, 0)."""
+    spec = BONES[name]
+    m = np.isin(model.lab, spec["values"])
+    idx0 = np.zeros(3, int)
+    n_ext = int(round(spec["extend_mm"] / float(model.src_spacing[2])))
+    if n_ext > 0:
+        # The source scans cut the bones only at the bottom (k = 0); repeat the first slice.
+        if m[0].any():
+            m = np.concatenate([np.repeat(m[:1], n_ext, axis=0), m], axis=0)
+            idx0[2] -= n_ext
+    return m, idx0
+
+
+def _crop_pad_mm(cfg):
+    """Crop margin (mm) of a bone's fields beyond its label box: room for the blur, the joint
+    carving (psi needs the neighbour's sdf0 up to g + 2 k) and the disc filler (F_a + F_b < L)."""
+    gaps = [cfg["joint_gap_mm"]] + list((cfg.get("joint_gaps") or {}).values())
+    return float(max(8.0, 3.0 * cfg["label_sigma"] + 2.0, max(gaps) * 1.1 + 2 * cfg["joint_margin_mm"] + 3.0,
+                     cfg["disc_mm"] + 2.0 if any(BONES[b]["kind"] == "vertebra" for b in cfg["bones"]) else 0.0))
+
+
+def _edt_sdf(inside, h):
+    """Signed distance (mm, negative inside) of a boolean (z, y, x) mask on a grid of step h,
+    node centres shifted to the voxel faces (+-h/2), float32."""
+    import edt
+
+    d_in = edt.edt(np.ascontiguousarray(inside), anisotropy=(h, h, h), black_border=False, parallel=2)
+    d_out = edt.edt(np.ascontiguousarray(~inside), anisotropy=(h, h, h), black_border=False, parallel=2)
+    out = np.where(inside, -(d_in - 0.5 * h), d_out - 0.5 * h).astype(np.float32)
+    return out
+
+
+def _grad_norm(a, h, chunk=48):
+    """|grad a| (central differences, one-sided at the ends) of a (z, y, x) float32 array, in
+    z-chunks (bounded memory)."""
+    out = np.empty_like(a)
+    nz = a.shape[0]
+    for z0 in range(0, nz, chunk):
+        z1 = min(nz, z0 + chunk)
+        lo, hi = max(0, z0 - 1), min(nz, z1 + 1)
+        gz, gy, gx = np.gradient(a[lo:hi], h)
+        s = slice(z0 - lo, z0 - lo + (z1 - z0))
+        out[z0:z1] = np.sqrt(gz[s] ** 2 + gy[s] ** 2 + gx[s] ** 2)
+    return out
+
+
+def _keys_matrix(x_out, x0, step, n):
+    """(len(x_out), n): cubic convolution (Keys, a = -0.5: interpolating, C1, exact for
+    quadratics) of samples at x0 + step * i, indices clamped at the ends."""
+    t = (np.asarray(x_out, float) - x0) / step
+    i = np.floor(t).astype(int)
+    f = t - i
+    ws = (((-0.5 * f + 1.0) * f - 0.5) * f, (1.5 * f - 2.5) * f * f + 1.0,
+          ((-1.5 * f + 2.0) * f + 0.5) * f, (0.5 * f - 0.5) * f * f)
+    m = np.zeros((len(t), n), np.float32)
+    r = np.arange(len(t))
+    for k, w in zip((-1, 0, 1, 2), ws):
+        np.add.at(m, (r, np.clip(i + k, 0, n - 1)), w)
+    return m
+
+
+def _up2(c, axis, n_fine):
+    """Cubic-convolution (Keys) upsampling by 2 along ``axis``: fine node j lies at coarse
+    index 1 + j / 2 (even j: a coarse node, copied; odd j: a midpoint, weights
+    (-1, 9, 9, -1) / 16). Indices past the end are clamped (edge replication)."""
+    c = np.moveaxis(np.asarray(c, np.float32), axis, 0)
+    n_even, n_odd = (n_fine + 1) // 2, n_fine // 2
+    need = max(1 + n_even, n_odd + 3)
+    if len(c) < need:
+        c = np.concatenate([c, np.repeat(c[-1:], need - len(c), axis=0)], axis=0)
+    out = np.empty((n_fine,) + c.shape[1:], np.float32)
+    out[0::2] = c[1:1 + n_even]
+    out[1::2] = (9.0 * (c[1:n_odd + 1] + c[2:n_odd + 2]) - c[0:n_odd] - c[3:n_odd + 3]) / 16.0
+    return np.moveaxis(out, 0, axis)
+
+
+class _Upsampler:
+    """Fields on the geometry grid (step hg = 2 h, node k at fine node 2 (k - 1)) -> the crop's
+    model-grid nodes, by separable cubic convolution; x and y once per field, z per chunk."""
+
+    def __init__(self, fine_shape):
+        self.shape = fine_shape
+        self.xy = {}
+
+    def add(self, key, arr):
+        nz, ny, nx = self.shape
+        self.xy[key] = _up2(_up2(arr, 2, nx), 1, ny)  # (coarse z, fine y, fine x)
+
+    def rows(self, key, z0, z1):
+        # fine rows z0..z1-1 need coarse rows floor(z0 / 2) .. floor((z1 - 1) / 2) + 3
+        c0 = z0 // 2
+        sub = self.xy[key][c0:c0 + (z1 - z0) // 2 + 6]
+        full = _up2(sub, 0, z1 - z0 + (z0 % 2))
+        return full[z0 % 2:]
+
+
+def _make_bone(model, index, name, src_mask, idx0, start, shape):
+    """Steps 1-4 of the module doc for one bone on the crop (start, shape) of the model grid.
+
+    The smooth fields (sdf0, the plate weight w, |grad D_s|^2, rho) are computed on a geometry
+    grid of step hg = 2 h (the label is 3 mm: nothing finer exists in it) and brought to the
+    model grid by cubic convolution; F is composed from them node by node. |grad D_s|^2 rather
+    than d_m is interpolated because it is smooth through the medial surface (d_m has a kink
+    there that interpolation would fill in, closing thin plates' holes or opening new ones).
+    """
+    from scipy import ndimage
+    from scipy.special import erfinv
+
+    cfg, h = model.cfg, model.h
+    hg = 2.0 * h
+    spec = BONES[name]
+    kind = KINDS[spec["kind"]]
+    t0 = time.perf_counter()
+    fine = [model.g0[a] + h * (start[a] + np.arange(shape[2 - a])) for a in range(3)]  # x, y, z
+    # geometry grid: covers the crop, one node beyond each end for the interpolation
+    coarse = [np.arange(fine[a][0] - hg, fine[a][-1] + 2 * hg, hg) for a in range(3)]
+    # 1. analytic Gaussian blur of the label's voxel boxes, on the geometry grid
+    sp = model.src_spacing
+    ks, lo_i, hi_i = [], [], []
+    for a in range(3):
+        c_q = sp[a] * (idx0[a] + np.arange(src_mask.shape[2 - a]))
+        reach = 4.0 * cfg["label_sigma"] + sp[a]
+        ii = np.flatnonzero((c_q > coarse[a][0] - reach) & (c_q < coarse[a][-1] + reach))
+        lo_i.append(ii[0])
+        hi_i.append(ii[-1] + 1)
+        ks.append(_box_gauss_matrix(coarse[a], c_q[ii], sp[a], cfg["label_sigma"]))
+    sub = src_mask[lo_i[2]:hi_i[2], lo_i[1]:hi_i[1], lo_i[0]:hi_i[0]].astype(np.float32)
+    inside = _tensor(sub, ks[2], ks[1], ks[0]) > 0.5
+    # 2. SDF, smoothed by one geometry node (removes its +-hg/2 steps)
+    sdf = ndimage.gaussian_filter(_edt_sdf(inside, hg), 1.0, mode="nearest", truncate=3.0)
+    del inside
+    # 3. seeded low-frequency shape change
+    lo_q = np.array([c[0] for c in coarse])
+    hi_q = np.array([c[-1] for c in coarse])
+    if cfg["perturb_mm"]:
+        sdf += np.float32(cfg["perturb_mm"]) * _Lattice(model.rng(1, index), lo_q, hi_q, 40.0).grid(*coarse)
+    up = _Upsampler(shape)
+    up.add("sdf0", sdf)
+    stats = {"seconds_shape": time.perf_counter() - t0}
+    plates = bool(cfg["plates"] and kind["plate"] is not None)
+    if plates:
+        t1 = time.perf_counter()
+        r_a, r_b = kind["r_a"], kind["r_b"]
+        size = 2 * int(math.ceil((r_b + 1.0) / hg)) + 1
+        R = ndimage.maximum_filter(np.maximum(-sdf, 0.0), size=size, mode="constant", cval=0.0)
+        w = (1.0 - _smoothstep(r_a, r_b, R)).astype(np.float32)
+        w[sdf > hg] = 0.0  # outside the bone w plays no role
+        plates = bool((w > 0).any())
+    if plates:
+        sm = float(cfg["medial_sigma"]) / hg
+        grad = []
+        for axis in range(3):  # x, y, z components of grad D_s (array axes reversed)
+            order = [0, 0, 0]
+            order[2 - axis] = 1
+            grad.append(ndimage.gaussian_filter(sdf, sm, order=order, mode="nearest", truncate=4.0) / hg)
+        # The plate's normal n: principal direction of the structure tensor of grad D_s
+        # (smoothed over ``2 r_b``-ish, both faces of a plate): gradients there are +-n on a
+        # flat plate and the two face normals on a wedge. Only the component of grad D_s
+        # along n measures the distance to the medial surface: on a wedge grad D_s also slopes
+        # along the medial surface (by sin(half angle)), which would pierce thin wedges.
+        # Sheetness 1 - m2 / m1 (m1 >= m2 its two largest eigenvalues) is ~1 on plates, ~0 on
+        # rods (gradients all around the axis): rods (pubic rami, processes seen end-on) are
+        # not thinned, they would become wires.
+        zone = ndimage.binary_dilation(w > 0, iterations=2) & (sdf < hg)
+        idx = np.nonzero(zone)
+        st = float(kind.get("structure_mm", 2.0)) / hg
+        T = np.empty((len(idx[0]), 3, 3), np.float32)
+        for i in range(3):
+            for j in range(i, 3):
+                T[:, i, j] = T[:, j, i] = ndimage.gaussian_filter(grad[i] * grad[j], st, mode="nearest",
+                                                                  truncate=3.0)[idx]
+        mu, vec = np.linalg.eigh(T)  # ascending
+        del T
+        n = vec[:, :, 2]
+        gn = sum(grad[a][idx] * n[:, a] for a in range(3))
+        g2 = sum(grad[a] ** 2 for a in range(3))  # off the zone w = 0: any value will do
+        g2[idx] = gn * gn
+        sheet = np.zeros_like(sdf)
+        sheet[idx] = np.clip(1.0 - mu[:, 1] / np.maximum(mu[:, 2], 1e-6), 0.0, 1.0)
+        w *= _smoothstep(0.35, 0.65, sheet).astype(np.float32)
+        del grad, mu, vec, n, gn, sheet, zone, idx
+        t_min, t_max = (cfg["plate_scale"] * v for v in kind["plate"])
+        s = np.clip(0.45 + 0.3 * _Lattice(model.rng(2, index), lo_q, hi_q, 25.0).grid(*coarse)
+                    + 0.25 * (R - r_a) / (r_b - r_a), 0.0, 1.0)
+        rho = (0.5 * (t_min + (t_max - t_min) * s)).astype(np.float32)
+        stats["label_half_thickness_in_plates_mm"] = (
+            [float(v) for v in np.percentile(R[w > 0.5], [5, 50, 95])] if (w > 0.5).any() else None)
+        up.add("w", w)
+        up.add("g2", g2)
+        up.add("rho", rho)
+        del R, s, g2, rho
+        stats["seconds_plates"] = time.perf_counter() - t1
+    del sdf
+    # compose F on the model grid
+    t1 = time.perf_counter()
+    nz = shape[0]
+    F = np.empty(shape, np.float32)
+    sdf0 = np.empty(shape, np.float32)
+    w16 = np.zeros(shape, np.float16) if plates else None
+    rho16 = np.zeros(shape, np.float16) if plates else None
+    sq2 = np.float32(float(cfg["medial_sigma"]) * math.sqrt(2.0))
+    for z0 in range(0, nz, 32):
+        z1 = min(nz, z0 + 32)
+        s0 = up.rows("sdf0", z0, z1)
+        sdf0[z0:z1] = s0
+        if plates:
+            w = np.clip(up.rows("w", z0, z1), 0.0, 1.0)
+            g = np.sqrt(np.clip(up.rows("g2", z0, z1), 0.0, 0.999))
+            rho = up.rows("rho", z0, z1)
+            d_m = sq2 * erfinv(g).astype(np.float32)
+            F[z0:z1] = np.maximum(s0, (1.0 - w) * s0 + w * (d_m - rho))
+            w16[z0:z1] = w
+            rho16[z0:z1] = rho
+        else:
+            F[z0:z1] = s0
+    stats["seconds_compose"] = time.perf_counter() - t1
+    return _Bone(name=name, label=int(spec["values"][0]), kind=spec["kind"], start=np.array(start, int),
+                 F=F, sdf0=sdf0, w=w16, rho=rho16, stats=stats)
+
+
+def _pair_gap(cfg, a, b):
+    gaps = cfg.get("joint_gaps") or {}
+    for key in ((a, b), (b, a)):
+        if key in gaps:
+            return float(gaps[key])
+    return float(cfg["joint_gap_mm"])
+
+
+def _overlap(a: _Bone, b: _Bone):
+    lo = np.maximum(a.start, b.start)
+    hi = np.minimum(a.stop, b.stop)
+    if np.any(hi <= lo):
+        return None
+    sa = tuple(slice(lo[k] - a.start[k], hi[k] - a.start[k]) for k in (2, 1, 0))
+    sb = tuple(slice(lo[k] - b.start[k], hi[k] - b.start[k]) for k in (2, 1, 0))
+    return sa, sb
+
+
+def _carve_joints(model):
+    """Step 5: a joint space of at least g between every pair of bones that come closer."""
+    cfg = model.cfg
+    k = float(cfg["joint_margin_mm"])
+    out = []
+    bones = model.bones
+    for i in range(len(bones)):
+        for j in range(i + 1, len(bones)):
+            a, b = bones[i], bones[j]
+            ov = _overlap(a, b)
+            if ov is None:
+                continue
+            sa, sb = ov
+            g = _pair_gap(cfg, a.name, b.name)
+            sda, sdb = a.sdf0[sa], b.sdf0[sb]
+            near = float(np.min(sda + sdb)) if sda.size else np.inf
+            # Sum of the two distances < g + 2 k somewhere: the bones come within reach.
+            if not near < 1.1 * g + 2.0 * k:
+                out.append({"a": a.name, "b": b.name, "gap_mm": g, "carved": False,
+                            "label_min_sum_mm": near})
+                continue
+            psi = 0.5 * (sda - sdb)
+            half = np.float32(0.55 * g)  # g' / 2 with g' = 1.1 g
+            fa = _smax(a.F[sa], psi + half, k).astype(np.float32)
+            fb = _smax(b.F[sb], -psi + half, k).astype(np.float32)
+            n_a = int(((a.F[sa] < 0) & (fa >= 0)).sum())
+            n_b = int(((b.F[sb] < 0) & (fb >= 0)).sum())
+            a.F[sa] = fa
+            b.F[sb] = fb
+            out.append({"a": a.name, "b": b.name, "gap_mm": g, "carved": True,
+                        "label_min_sum_mm": near,
+                        "carved_ml": [n_a * model.h ** 3 / 1000.0, n_b * model.h ** 3 / 1000.0]})
+    return out
+
+
+def _cleanup(b: _Bone, h):
+    """Step 6: keep the largest component of {F < 0}, fill enclosed cavities."""
+    from scipy import ndimage
+
+    inside = b.F < 0
+    lab, n = ndimage.label(inside)
+    removed = 0
+    if n > 1:
+        sizes = np.bincount(lab.ravel())[1:]
+        keep = int(np.argmax(sizes)) + 1
+        drop = inside & (lab != keep)
+        removed = int(drop.sum())
+        b.F[drop] = np.float32(0.5 * h)
+        inside &= ~drop
+    del lab
+    out_lab, n_out = ndimage.label(~inside)
+    filled = 0
+    if n_out > 1:
+        border = np.unique(np.concatenate([out_lab[[0, -1]].ravel(), out_lab[:, [0, -1]].ravel(),
+                                           out_lab[:, :, [0, -1]].ravel()]))
+        cav = (out_lab > 0) & ~np.isin(out_lab, border)
+        filled = int(cav.sum())
+        b.F[cav] = np.float32(-0.5 * h)
+    b.stats.update(removed_voxels=removed, filled_voxels=filled)
+
+
+def _zero_set_mesh(F, h, origin_q):
+    """Flying edges of F's node values (inside negative, the nodes at the crop border forced
+    outside) -> vertices (n, 3) q mm, faces (m, 3) outward."""
+    import vtk
+    from vtk.util import numpy_support as ns
+
+    from BoneWatertightLib.mesh import enclosed_volume
+
+    vol = np.array(F, np.float32, copy=True)
+    # Nodes exactly on the zero set would give coincident vertices (zero-area triangles).
+    tiny = np.float32(1e-4 * h)
+    vol[np.abs(vol) < tiny] = tiny
+    vol[[0, -1]] = h
+    vol[:, [0, -1]] = h
+    vol[:, :, [0, -1]] = h
+    img = vtk.vtkImageData()
+    img.SetDimensions(*[int(v) for v in vol.shape[::-1]])
+    img.SetSpacing(h, h, h)
+    img.SetOrigin(*[float(v) for v in origin_q])
+    img.GetPointData().SetScalars(ns.numpy_to_vtk(vol.ravel(), deep=True))
+    fe = vtk.vtkFlyingEdges3D()
+    fe.SetInputData(img)
+    fe.SetValue(0, 0.0)
+    fe.ComputeNormalsOff()
+    fe.ComputeGradientsOff()
+    fe.ComputeScalarsOff()
+    fe.Update()
+    out = fe.GetOutput()
+    if not out.GetNumberOfPolys():
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    v = ns.vtk_to_numpy(out.GetPoints().GetData()).astype(np.float64)
+    f = ns.vtk_to_numpy(out.GetPolys().GetConnectivityArray()).astype(np.int64).reshape(-1, 3)
+    if enclosed_volume(v, f) < 0:
+        f = f[:, ::-1].copy()
+    return v, f
+
+
+def _genus(v, f):
+    from BoneWatertightLib.mesh.checks import check_surface
+
+    if not len(f):
+        return None, 0
+    rep = check_surface(v, f, check_self_intersections=False, expect_components=None)
+    return rep.genus, int(rep.n_components)
+
+
+# ---------------------------------------------------------------------------- building a case
+
+def _config(case, overrides):
+    if case not in CASES:
+        raise ValueError(f"Unknown anatomical case {case!r}; choose one of {', '.join(CASES)}")
+    cfg = dict(_BASE)
+    cfg.update(CASES[case])
+    unknown = set(overrides) - set(cfg) - {"_keep_sdf0"}
+    if unknown:
+        raise ValueError(f"Unknown anatomical phantom parameter(s): {', '.join(sorted(unknown))}")
+    cfg.update(overrides)
+    cfg["bones"] = tuple(cfg["bones"])
+    h = float(cfg["model_grid"])
+    if not 0.2 <= h <= 0.6:
+        raise ValueError(f"model_grid must be 0.2-0.6 mm, got {h}")
+    for name in cfg["bones"]:
+        plate = KINDS[BONES[name]["kind"]]["plate"] if name in BONES else None
+        # Flying edges keeps a plate of thickness >= h connected (inside = negative); 1.2 h
+        # leaves room for the interpolation of F across the plate.
+        if cfg["plates"] and plate is not None and cfg["plate_scale"] * plate[0] < 1.2 * h:
+            raise ValueError(f"{name}: thinnest plate {cfg['plate_scale'] * plate[0]:.2f} mm is below "
+                             f"1.2 x model_grid ({1.2 * h:.2f} mm); use a finer model_grid")
+    for key in ("pixel", "slice_spacing", "psf_sigma"):
+        if not float(cfg[key]) > 0:
+            raise ValueError(f"{key} must be > 0")
+    return cfg
+
+
+def _build_geometry(cfg, seed):
+    """The model with every bone's F (steps 1-6), its CT frame, and the truths (Surface, LPS)."""
+    t_start = time.perf_counter()
+    model = _Model(cfg, seed)
+    h = model.h
+    sp = model.src_spacing
+    pad = _crop_pad_mm(cfg)
+    masks, boxes = {}, {}
+    for name in cfg["bones"]:
+        m, idx0 = _source_mask(model, name)
+        nz = np.argwhere(m)  # (k, j, i)
+        lo_idx = nz.min(0)[::-1] + idx0
+        hi_idx = nz.max(0)[::-1] + idx0
+        masks[name] = (m, idx0)
+        boxes[name] = (sp * (lo_idx - 0.5), sp * (hi_idx + 0.5))  # voxel extents, q mm
+    lo_all = np.min([b[0] for b in boxes.values()], axis=0)
+    hi_all = np.max([b[1] for b in boxes.values()], axis=0)
+    fov_lo = lo_all - cfg["margin_mm"]
+    fov_hi = hi_all + cfg["margin_mm"]
+    model.g0 = np.minimum(fov_lo, lo_all - pad) - 2 * h
+    model.fov = (fov_lo, fov_hi)
+    t_bones = {}
+    for index, name in enumerate(cfg["bones"]):
+        t0 = time.perf_counter()
+        lo, hi = boxes[name]
+        start = np.floor((lo - pad - model.g0) / h).astype(int)
+        stop = np.ceil((hi + pad - model.g0) / h).astype(int) + 1
+        shape = tuple(int(v) for v in (stop - start)[::-1])
+        b = _make_bone(model, index, name, masks[name][0], masks[name][1], start, shape)
+        model.bones.append(b)
+        t_bones[name] = time.perf_counter() - t0
+    del masks
+    # genus of the smoothed label (before thinning and joints): thinning must not open holes
+    genus0 = {}
+    for b in model.bones:
+        v, f = _zero_set_mesh(b.sdf0, h, model.node_q(b.start))
+        genus0[b.name] = _genus(v, f)
+    t0 = time.perf_counter()
+    joints = _carve_joints(model)
+    t_joints = time.perf_counter() - t0
+    for b in model.bones:
+        if not cfg.get("_keep_sdf0"):
+            b.sdf0 = None  # only the carving needed it
+        _cleanup(b, h)
+    # CT frame
+    spacing = np.array([cfg["pixel"], cfg["pixel"], cfg["slice_spacing"]], float)
+    size = np.floor((fov_hi - fov_lo) / spacing).astype(int) + 1
+    model.ct_spacing = spacing
+    model.ct_size = size
+    model.q_ct0 = fov_lo
+    model.direction = model.src_dir @ _rotation(cfg["direction_angles_deg"])
+    model.x0 = model.src_origin + model.src_dir @ fov_lo
+    truths, meta = {}, {}
+    t0 = time.perf_counter()
+    for b in model.bones:
+        v, f = _zero_set_mesh(b.F, h, model.node_q(b.start))
+        truths[b.label] = Surface(model.to_physical(v), f, "LPS")
+        g, nc = _genus(v, f)
+        meta[b.name] = {"label": b.label, "genus": g, "n_components": nc,
+                        "genus_smoothed_label": genus0[b.name][0],
+                        "n_faces": int(len(f)), "crop_nodes": [int(s) for s in b.F.shape[::-1]],
+                        **b.stats}
+    t_truth = time.perf_counter() - t0
+    model.timing = {"bones": t_bones, "joints": t_joints, "truth_meshes": t_truth,
+                    "geometry_total": time.perf_counter() - t_start}
+    return model, truths, meta, joints
