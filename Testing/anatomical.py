@@ -171,12 +171,12 @@ def data_available(source: str = "pelvis") -> bool:
 # above which it is left as it is (w = 0); cortex: mean cortical thickness (mm) outside the
 # plates; cortex_hu / trab_hu: mean HU.
 KINDS = {
-    "hip": dict(plate=(0.6, 2.6), r_a=4.5, r_b=6.5, cortex=1.1, cortex_hu=1350.0, trab_hu=230.0),
-    "sacrum": dict(plate=(0.8, 3.0), r_a=2.8, r_b=4.2, cortex=0.6, cortex_hu=1200.0, trab_hu=150.0),
-    "femur": dict(plate=None, r_a=0.0, r_b=0.0, cortex=1.8, cortex_hu=1450.0, trab_hu=260.0),
-    "vertebra": dict(plate=(1.0, 3.0), r_a=2.6, r_b=4.0, cortex=0.7, cortex_hu=1250.0, trab_hu=190.0),
-    "scapula": dict(plate=(0.6, 2.2), r_a=2.6, r_b=4.2, cortex=0.9, cortex_hu=1350.0, trab_hu=220.0),
-    "humerus": dict(plate=None, r_a=0.0, r_b=0.0, cortex=1.6, cortex_hu=1450.0, trab_hu=240.0),
+    "hip": dict(plate=(0.6, 1.7), r_a=4.5, r_b=6.5, cortex=1.2, cortex_hu=1350.0, trab_hu=150.0),
+    "sacrum": dict(plate=(0.7, 2.4), r_a=2.8, r_b=4.2, cortex=0.6, cortex_hu=1200.0, trab_hu=95.0),
+    "femur": dict(plate=None, r_a=0.0, r_b=0.0, cortex=1.0, cortex_hu=1300.0, trab_hu=170.0),
+    "vertebra": dict(plate=(1.2, 3.0), r_a=3.0, r_b=4.6, cortex=0.7, cortex_hu=1250.0, trab_hu=170.0),
+    "scapula": dict(plate=(0.6, 2.2), r_a=2.6, r_b=4.2, cortex=0.9, cortex_hu=1350.0, trab_hu=200.0),
+    "humerus": dict(plate=None, r_a=0.0, r_b=0.0, cortex=1.6, cortex_hu=1400.0, trab_hu=220.0),
 }
 
 # Bones of the sources: label values forming the bone (the first is the phantom's label value,
@@ -622,7 +622,7 @@ def _make_bone(model, index, name, src_mask, idx0, start, shape):
         w *= _smoothstep(0.35, 0.65, sheet).astype(np.float32)
         del grad, mu, vec, n, gn, sheet, zone, idx
         t_min, t_max = (cfg["plate_scale"] * v for v in kind["plate"])
-        s = np.clip(0.45 + 0.3 * _Lattice(model.rng(2, index), lo_q, hi_q, 25.0).grid(*coarse)
+        s = np.clip(0.35 + 0.3 * _Lattice(model.rng(2, index), lo_q, hi_q, 25.0).grid(*coarse)
                     + 0.25 * (R - r_a) / (r_b - r_a), 0.0, 1.0)
         rho = (0.5 * (t_min + (t_max - t_min) * s)).astype(np.float32)
         stats["label_half_thickness_in_plates_mm"] = (
@@ -640,7 +640,9 @@ def _make_bone(model, index, name, src_mask, idx0, start, shape):
     sdf0 = np.empty(shape, np.float32)
     w16 = np.zeros(shape, np.float16) if plates else None
     rho16 = np.zeros(shape, np.float16) if plates else None
-    sq2 = np.float32(float(cfg["medial_sigma"]) * math.sqrt(2.0))
+    # sdf was already smoothed by one geometry node (hg) before D_s = G_sm * sdf: the plate's
+    # profile is blurred by sqrt(sm^2 + hg^2) in all, which the inversion must use.
+    sq2 = np.float32(math.hypot(float(cfg["medial_sigma"]), hg) * math.sqrt(2.0))
     for z0 in range(0, nz, 32):
         z1 = min(nz, z0 + 32)
         s0 = up.rows("sdf0", z0, z1)
@@ -879,3 +881,555 @@ def _build_geometry(cfg, seed):
     model.timing = {"bones": t_bones, "joints": t_joints, "truth_meshes": t_truth,
                     "geometry_total": time.perf_counter() - t_start}
     return model, truths, meta, joints
+
+
+# ---------------------------------------------------------------------------- CT formation
+
+SOFT_TISSUE_HU = 45.0
+
+
+def _background(model):
+    """The source CT as a soft-tissue background on its own grid (z, y, x) float32: every
+    labelled bone (dilated by one voxel) and everything above 120 HU (unlabelled bone,
+    calcifications, contrast) set to 45 HU, clipped to [-1000, 100], smoothed by one voxel."""
+    from scipy import ndimage
+
+    ct = sitk.GetArrayFromImage(model.src_ct).astype(np.float32)
+    if ct.shape != model.lab.shape:
+        raise ValueError("the source CT and its labels must share one grid")
+    bone = ndimage.binary_dilation(model.lab > 0, iterations=1) | (ct > 120.0)
+    ct[bone] = SOFT_TISSUE_HU
+    np.clip(ct, -1000.0, 100.0, out=ct)
+    return ndimage.gaussian_filter(ct, 1.0, mode="nearest")
+
+
+def _texture_tile(rng, hf, n=64, sigma_mm=0.8):
+    """Periodic (n, n, n) trabecular texture of unit std at the fine step hf (wrap-smoothed
+    white noise): indexed by the fine node index modulo n."""
+    from scipy import ndimage
+
+    t = ndimage.gaussian_filter(rng.normal(size=(n, n, n)).astype(np.float32), sigma_mm / hf, mode="wrap")
+    return (t / max(float(t.std()), 1e-6)).astype(np.float32)
+
+
+def _fill_pairs(model):
+    """(a, b, L, HU mean, HU amplitude) of every pair of bones: the space where F_a + F_b < L is
+    joint filler (cartilage; a disc between vertebrae)."""
+    cfg = model.cfg
+    out = []
+    for i in range(len(model.bones)):
+        for j in range(i + 1, len(model.bones)):
+            a, b = model.bones[i], model.bones[j]
+            if _overlap(a, b) is None:
+                continue
+            if a.kind == "vertebra" and b.kind == "vertebra":
+                out.append((a, b, float(cfg["disc_mm"]), float(cfg["disc_hu"]), 12.0))
+            else:
+                out.append((a, b, _pair_gap(cfg, a.name, b.name) + 1.0, float(cfg["cartilage_hu"]), 18.0))
+    return out
+
+
+def _form_ct(model):
+    """Fine HU image -> pixel aperture * PSF in-plane, slice profile along z, sampled at the CT
+    voxel centres (one separable linear operator), + noise -> int16 (z, y, x)."""
+    cfg, h = model.cfg, model.h
+    t0 = time.perf_counter()
+    px = float(cfg["pixel"])
+    thick = float(cfg["slice_thickness"] or cfg["slice_spacing"])
+    psf = float(cfg["psf_sigma"])
+    f = 2 if min(px, thick) >= 3.0 * h else 1
+    hf = f * h
+    sz_sigma = 0.15 * thick
+    n_ct = model.ct_size
+    ct_axes = [model.q_ct0[a] + model.ct_spacing[a] * np.arange(n_ct[a]) for a in range(3)]
+    reach = np.array([0.5 * px + 3.5 * psf, 0.5 * px + 3.5 * psf, 0.5 * thick + 3.5 * sz_sigma]) + hf
+    # fine nodes: global model nodes whose index is a multiple of f
+    m_lo = np.floor((model.q_ct0 - reach - model.g0) / hf).astype(int)
+    m_hi = np.ceil((model.q_ct0 + model.ct_spacing * (n_ct - 1) + reach - model.g0) / hf).astype(int) + 1
+    fine_axes = [model.g0[a] + hf * np.arange(m_lo[a], m_hi[a]) for a in range(3)]
+    nxf, nyf, nzf = (len(a) for a in fine_axes)
+    fine_axes_q0 = np.array([a[0] for a in fine_axes])
+    kx = _box_gauss_matrix(ct_axes[0], fine_axes[0], px, psf, step=True)
+    ky = _box_gauss_matrix(ct_axes[1], fine_axes[1], px, psf, step=True)
+    kz = _box_gauss_matrix(ct_axes[2], fine_axes[2], thick, sz_sigma, step=True)
+    # background: the source CT, linearly interpolated onto the fine nodes
+    bg = _background(model)
+    sp = model.src_spacing
+    lx = _linear_matrix(fine_axes[0], 0.0, sp[0], bg.shape[2])
+    ly = _linear_matrix(fine_axes[1], 0.0, sp[1], bg.shape[1])
+    lz = _linear_matrix(fine_axes[2], 0.0, sp[2], bg.shape[0])
+    bg_xy = ly[None] @ (bg @ lx.T)  # (source z, fine y, fine x)
+    del bg
+    nzs = bg_xy.shape[0]
+    tile = _texture_tile(model.rng(3, 99), hf)
+    nt = tile.shape[0]
+    # per bone: the fine sub-grid of its crop and its smooth HU fields
+    parts = []
+    for index, b in enumerate(model.bones):
+        kind = KINDS[b.kind]
+        g_first = -(-b.start // f) * f  # first global node index >= start that is a multiple of f
+        loc0 = g_first - b.start  # offset in the crop (x-y-z)
+        fidx0 = g_first // f - m_lo  # its fine-grid index
+        n_sub = np.maximum(0, (np.array(b.F.shape[::-1]) - loc0 + f - 1) // f)
+        lo_q = fine_axes_q0 + hf * fidx0
+        hi_q = fine_axes_q0 + hf * (fidx0 + n_sub - 1)
+        rng = model.rng(3, index)
+        fields = {"tc": _Lattice(rng, lo_q, hi_q, 20.0), "chu": _Lattice(rng, lo_q, hi_q, 25.0),
+                  "thu": _Lattice(rng, lo_q, hi_q, 18.0)}
+        nf = np.array([nxf, nyf, nzf])
+        clo = np.clip(fidx0, 0, nf)
+        chi = np.clip(fidx0 + n_sub, 0, nf)
+        parts.append(dict(bone=b, kind=kind, loc0=loc0, fidx0=fidx0, lo=clo, hi=chi, fields=fields))
+    pairs = []
+    for a, b, L, hu_mean, hu_amp in _fill_pairs(model):
+        pa = parts[model.bones.index(a)]
+        pb = parts[model.bones.index(b)]
+        lo = np.maximum(pa["lo"], pb["lo"])
+        hi = np.minimum(pa["hi"], pb["hi"])
+        if np.any(hi <= lo):
+            continue
+        lat = _Lattice(model.rng(3, 50 + len(pairs)), _fine_q(fine_axes, lo), _fine_q(fine_axes, hi - 1), 15.0)
+        pairs.append(dict(a=pa, b=pb, lo=lo, hi=hi, L=L, hu=hu_mean, amp=hu_amp, field=lat))
+    out = np.zeros((n_ct[2], n_ct[1], n_ct[0]), np.float32)
+    slab = max(8, int(3e6 // (nxf * nyf)))
+    for z0 in range(0, nzf, slab):
+        z1 = min(nzf, z0 + slab)
+        rows = np.flatnonzero(kz[:, z0:z1].any(axis=1))
+        if not len(rows):
+            continue
+        hu = (lz[z0:z1] @ bg_xy.reshape(nzs, -1)).reshape(z1 - z0, nyf, nxf)
+        for pr in pairs:
+            zl, zh = max(z0, pr["lo"][2]), min(z1, pr["hi"][2])
+            if zh <= zl:
+                continue
+            fa = _bone_sub(pr["a"], f, (pr["lo"][0], pr["hi"][0]), (pr["lo"][1], pr["hi"][1]), (zl, zh))
+            fb = _bone_sub(pr["b"], f, (pr["lo"][0], pr["hi"][0]), (pr["lo"][1], pr["hi"][1]), (zl, zh))
+            occ = (np.clip(0.5 - (fa + fb - pr["L"]) / hf, 0.0, 1.0) * np.clip(0.5 + fa / hf, 0.0, 1.0)
+                   * np.clip(0.5 + fb / hf, 0.0, 1.0))
+            if not occ.any():
+                continue
+            xs = fine_axes[0][pr["lo"][0]:pr["hi"][0]]
+            ys = fine_axes[1][pr["lo"][1]:pr["hi"][1]]
+            zs = fine_axes[2][zl:zh]
+            fill = pr["hu"] + pr["amp"] * np.clip(pr["field"].grid(xs, ys, zs), -1.5, 1.5)
+            reg = hu[zl - z0:zh - z0, pr["lo"][1]:pr["hi"][1], pr["lo"][0]:pr["hi"][0]]
+            reg += occ * (fill - reg)
+        for part in parts:
+            b, kind = part["bone"], part["kind"]
+            lo, hi = part["lo"], part["hi"]
+            zl, zh = max(z0, lo[2]), min(z1, hi[2])
+            if zh <= zl or hi[0] <= lo[0] or hi[1] <= lo[1]:
+                continue
+            Fb = _bone_sub(part, f, (lo[0], hi[0]), (lo[1], hi[1]), (zl, zh))
+            occ = np.clip(0.5 - Fb / hf, 0.0, 1.0)
+            if not occ.any():
+                continue
+            xs, ys = fine_axes[0][lo[0]:hi[0]], fine_axes[1][lo[1]:hi[1]]
+            zs = fine_axes[2][zl:zh]
+            fl = part["fields"]
+            tc = np.clip(kind["cortex"] * (1.0 + 0.35 * fl["tc"].grid(xs, ys, zs)), 0.3, 3.0)
+            chu = kind["cortex_hu"] + 220.0 * fl["chu"].grid(xs, ys, zs)
+            if b.w is not None:
+                # thin plates are less dense than the cortex of the bodies
+                chu -= 350.0 * _bone_sub(part, f, (lo[0], hi[0]), (lo[1], hi[1]), (zl, zh), key="w")
+            chu = np.clip(chu, 1000.0, 1800.0)
+            tex = tile[np.ix_(np.arange(zl, zh) % nt, np.arange(lo[1], hi[1]) % nt,
+                              np.arange(lo[0], hi[0]) % nt)]
+            depth = -Fb
+            thu = (kind["trab_hu"] + 50.0 * np.clip(fl["thu"].grid(xs, ys, zs), -1.5, 1.5) + 35.0 * tex
+                   + 60.0 * np.exp(-np.maximum(depth - tc, 0.0) / 1.5))
+            occ_c = np.clip(0.5 - (Fb + tc) / hf, 0.0, 1.0)
+            reg = hu[zl - z0:zh - z0, lo[1]:hi[1], lo[0]:hi[0]]
+            reg += occ * (chu - reg) + occ_c * (thu - chu)
+        t = hu @ kx.T
+        t = ky[None] @ t
+        ns_, ny_, nx_ = t.shape
+        out[rows] += (kz[rows, z0:z1] @ t.reshape(ns_, ny_ * nx_)).reshape(len(rows), ny_, nx_)
+    t_form = time.perf_counter() - t0
+    out += model.rng(4).normal(0.0, float(cfg["noise"]), size=out.shape).astype(np.float32)
+    arr = np.clip(np.rint(out), -1024, 3071).astype(np.int16)
+    img = sitk.GetImageFromArray(arr)
+    img.SetSpacing([float(v) for v in model.ct_spacing])
+    img.SetOrigin([float(v) for v in model.x0])
+    img.SetDirection([float(v) for v in model.direction.ravel()])
+    return img, {"fine_step_mm": hf, "seconds": t_form, "fine_nodes": [nxf, nyf, nzf]}
+
+
+def _fine_q(fine_axes, idx):
+    """q (mm) of the fine node with fine indices idx (x-y-z), clamped to the grid."""
+    return np.array([fine_axes[a][int(np.clip(idx[a], 0, len(fine_axes[a]) - 1))] for a in range(3)])
+
+
+def _bone_sub(part, f, xr, yr, zr, key="F"):
+    """A field of a part's bone (F, or w) at the fine nodes with fine indices xr, yr, zr
+    (half-open ranges, inside the part's fine sub-grid): a strided view of the crop, as float32."""
+    b, loc0, lo = part["bone"], part["loc0"], part["fidx0"]
+    sl = []
+    for a, r in zip((2, 1, 0), (zr, yr, xr)):
+        i0 = loc0[a] + f * (r[0] - lo[a])
+        i1 = loc0[a] + f * (r[1] - lo[a])
+        sl.append(slice(i0, i1, f))
+    return np.asarray(getattr(b, key)[tuple(sl)], np.float32)
+
+
+# ---------------------------------------------------------------------------- labels
+
+def labels_ai(phantom, grid_mm=None, steal_mm=None, subsamples: int = 3, seed: int | None = None,
+              on_ct_grid: bool = True) -> sitk.Image:
+    """All bones as an AI segmentation brings them: coarse, stair-stepped, optionally wrong at
+    a joint.
+
+    Every voxel of a coarse grid (aligned with the CT's axes, spacing ``grid_mm``, its first
+    voxel centre 0 to half a voxel inside the CT's field of view at random per axis) takes the
+    majority of the truth over subsamples**3 points spread evenly in it (bone k where its F < 0,
+    F trilinear on the model grid; else background; ties to the lower value). Voxels whose
+    centre is farther than twice the half-diagonal + 0.2 mm from every bone surface are decided
+    by the centre alone.
+
+    Parameters
+    ----------
+    phantom : AnatomicalPhantom
+    grid_mm : float or (3,) floats (x, y, z), optional
+        Coarse grid spacing (mm, 1.5-3 for AI masks); default ``info["label_grid"]``.
+    steal_mm : (str, str, float), optional
+        (bone a, bone b, d): voxels of a whose centre lies within d mm of b's surface (F_b < d)
+        become b, as an AI mask that gives the top of the femoral head to the hip bone.
+        Default ``info["steal_mm"]``.
+    subsamples : int
+        Points per axis and voxel (3 -> 27 votes).
+    seed : int, optional
+        Seeds the grid's phase; default the phantom's seed.
+    on_ct_grid : bool
+        True: resampled nearest-neighbour onto the CT grid (as a consumer puts the AI mask on
+        the CT); False: the coarse grid itself.
+
+    Returns
+    -------
+    sitk.Image
+        uint8 label map (array (z, y, x)); values = the bones' label values (``names``), 0
+        background; the CT's direction.
+    """
+    model = phantom.info["_model"]
+    cfg = model.cfg
+    grid = np.broadcast_to(np.asarray(cfg["label_grid"] if grid_mm is None else grid_mm, float), (3,)).copy()
+    if np.any(grid <= 0) or subsamples < 1:
+        raise ValueError("grid_mm must be > 0 and subsamples >= 1")
+    steal = cfg["steal_mm"] if steal_mm is None else steal_mm
+    rng = model.rng(5, 0) if seed is None else np.random.default_rng([int(seed), 5, 0])
+    ct_sp = model.ct_spacing
+    box_lo = model.q_ct0 - 0.5 * ct_sp
+    box_hi = model.q_ct0 + (model.ct_size - 0.5) * ct_sp
+    start = box_lo + (1.0 - rng.uniform(0.0, 1.0, 3)) * 0.5 * grid
+    size = np.ceil((box_hi - start) / grid + 0.5).astype(int)
+    axes = [start[a] + grid[a] * np.arange(size[a]) for a in range(3)]
+    Z, Y, X = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    p = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
+    del X, Y, Z
+    values = np.array([0] + [b.label for b in model.bones])
+    d = np.stack([model.sample_F(b, p) for b in model.bones], axis=1)  # (n, bones)
+    inside = d < 0
+    lab = np.where(inside.any(axis=1), np.argmax(inside, axis=1) + 1, 0)
+    r = 2.0 * 0.5 * float(np.linalg.norm(grid)) + 0.2
+    near = np.flatnonzero((np.abs(d) < r).any(axis=1))
+    if subsamples > 1 and len(near):
+        t = (np.arange(subsamples) + 0.5) / subsamples - 0.5
+        off = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * grid
+        n_off = len(off)
+        step = max(1, int(1.5e6 // n_off))
+        for a0 in range(0, len(near), step):
+            idx = near[a0:a0 + step]
+            q = (p[idx][:, None, :] + off[None]).reshape(-1, 3)
+            votes = np.zeros((len(idx), len(values)), np.int32)
+            for k, b in enumerate(model.bones):
+                votes[:, k + 1] = (model.sample_F(b, q) < 0).reshape(-1, n_off).sum(axis=1)
+            votes[:, 0] = n_off - votes[:, 1:].sum(axis=1)
+            lab[idx] = np.argmax(votes, axis=1)
+    if steal:
+        a_name, b_name, mm = steal
+        ka = 1 + [b.name for b in model.bones].index(a_name)
+        kb = 1 + [b.name for b in model.bones].index(b_name)
+        lab[(lab == ka) & (d[:, kb - 1] < float(mm))] = kb
+    arr = values[lab].astype(np.uint8).reshape(tuple(size[::-1]))
+    img = sitk.GetImageFromArray(arr)
+    img.SetSpacing([float(v) for v in grid])
+    img.SetDirection([float(v) for v in model.direction.ravel()])
+    img.SetOrigin([float(v) for v in model.to_physical(start[None])[0]])
+    if not on_ct_grid:
+        return img
+    from phantoms import resample_nearest
+    return resample_nearest(img, phantom.ct)
+
+
+# ---------------------------------------------------------------------------- measurements
+
+def _area_samples(surface: Surface, n: int, rng):
+    """n points uniformly over a mesh's area with their faces' outward unit normals."""
+    tri = surface.vertices[surface.faces]
+    cr = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cr, axis=1)
+    t = rng.choice(len(tri), size=n, p=area / area.sum())
+    r1 = np.sqrt(rng.random(n))
+    r2 = rng.random(n)
+    p = (tri[t, 0] * (1 - r1)[:, None] + tri[t, 1] * (r1 * (1 - r2))[:, None]
+         + tri[t, 2] * (r1 * r2)[:, None])
+    nrm = cr[t] / np.maximum(2.0 * area[t], 1e-300)[:, None]
+    return p, nrm, float(area.sum())
+
+
+def thickness_samples(surface: Surface, n: int = 20000, seed: int = 0, max_mm: float = 8.0):
+    """Wall thickness of a closed surface at n area-uniform points, by ray casting (open3d):
+    from each point along the inward normal to the first hit; counted as a wall (a plate) when
+    the hit face looks the opposite way (normals' dot < -0.5) within ``max_mm``.
+
+    Returns
+    -------
+    points (n, 3), inward normals (n, 3), thickness (n,) mm (inf where no opposite wall within
+    max_mm), total area (mm^2).
+    """
+    import open3d as o3d
+
+    rng = np.random.default_rng(seed)
+    p, nrm, area = _area_samples(surface, n, rng)
+    shift = surface.vertices.mean(axis=0)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor((surface.vertices - shift).astype(np.float32)),
+                        o3d.core.Tensor(surface.faces.astype(np.uint32)))
+    org = p - shift - 1e-3 * nrm
+    rays = np.concatenate([org, -nrm], axis=1).astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))
+    t = hit["t_hit"].numpy().astype(float) + 1e-3
+    n2 = hit["primitive_normals"].numpy().astype(float)
+    ok = np.isfinite(t) & (t < max_mm) & (np.einsum("ij,ij->i", n2, nrm) < -0.5)
+    return p, -nrm, np.where(ok, t, np.inf), area
+
+
+def _node_values(model, b: _Bone, arr, q):
+    """Nearest-node values of a field on bone b's crop at points q (n, 3) (0 outside)."""
+    idx = np.rint((q - model.g0) / model.h).astype(int) - b.start
+    ok = np.all((idx >= 0) & (idx < np.array(arr.shape[::-1])), axis=1)
+    out = np.zeros(len(q), np.float32)
+    out[ok] = arr[idx[ok, 2], idx[ok, 1], idx[ok, 0]]
+    return out
+
+
+def _thickness_all(model, truths, n=20000):
+    """thickness_samples of every bone's truth (seeded by the bone's index), by bone name."""
+    return {b.name: thickness_samples(truths[b.label], n=n, seed=index) for index, b in enumerate(model.bones)}
+
+
+def _plate_figures(model, samples):
+    """info["plates"]: per bone, the thickness distribution of the truth in its plate zone
+    (w >= 0.5 at the wall's middle) and over the whole bone, and the agreement with the
+    construction's target 2 rho where the bone is fully thinned (w >= 0.95)."""
+    out = {}
+    for b in model.bones:
+        p, inward, t, area = samples[b.name]
+        wall = np.isfinite(t)
+        res = {"area_mm2": area,
+               "whole_bone_area_frac_thinner_than_1mm": float((t < 1.0).mean()),
+               "whole_bone_area_frac_thinner_than_2mm": float((t < 2.0).mean()),
+               "whole_bone_area_frac_thinner_than_3mm": float((t < 3.0).mean())}
+        if b.w is not None:
+            mid = model.to_local(p[wall] + 0.5 * t[wall, None] * inward[wall])
+            w = _node_values(model, b, b.w, mid)
+            rho = _node_values(model, b, b.rho, mid)
+            zone = w >= 0.5
+            tz = t[wall][zone]
+            res["plate_zone_area_frac"] = float(zone.sum() / len(t))
+            if len(tz):
+                res["plate_thickness_mm_p5_p25_p50_p75_p95"] = [float(v) for v in np.percentile(tz, [5, 25, 50, 75, 95])]
+                res["plate_thickness_min_mm"] = float(tz.min())
+                res["plate_frac_thinner_than_1mm"] = float((tz < 1.0).mean())
+            full = w >= 0.95  # fully thinned: the wall should be 2 rho thick
+            if full.sum() >= 20:
+                res["plate_full_target_abs_err_mm_median_p95"] = [
+                    float(v) for v in np.percentile(np.abs(t[wall][full] - 2.0 * rho[full]), [50, 95])]
+        out[b.name] = res
+    return out
+
+
+def _joint_figures(model, truths, joints):
+    """The smallest distance between the truths of every pair that was carved (exact
+    point-to-triangle, both ways), beside the requested gap."""
+    from metrics import TriangleLocator
+
+    by_name = {b.name: b for b in model.bones}
+    out = []
+    for j in joints:
+        row = dict(j)
+        if j["carved"]:
+            a, b = by_name[j["a"]], by_name[j["b"]]
+            sa, sb = truths[a.label], truths[b.label]
+            best = np.inf
+            for s, other, s_other in ((sa, b, sb), (sb, a, sa)):
+                # Only the vertices near the other bone (its F, a distance near its surface,
+                # below g + 3 mm) can be the closest: the exact query runs on those.
+                near = model.sample_F(other, model.to_local(s.vertices)) < j["gap_mm"] + 3.0
+                if near.any():
+                    best = min(best, float(TriangleLocator(s_other).query(s.vertices[near])[0].min()))
+            row["min_distance_mm"] = best
+        out.append(row)
+    return out
+
+
+def sample_ct(ct: sitk.Image, points) -> np.ndarray:
+    """CT values (HU) at physical points (n, 3) by trilinear interpolation."""
+    from scipy import ndimage
+
+    arr = sitk.GetArrayViewFromImage(ct)
+    D = np.array(ct.GetDirection()).reshape(3, 3)
+    idx = ((np.asarray(points, float) - np.array(ct.GetOrigin())) @ D) / np.array(ct.GetSpacing())
+    return ndimage.map_coordinates(np.asarray(arr, np.float32), idx[:, ::-1].T, order=1, mode="nearest")
+
+
+def _ct_figures(model, ct, samples):
+    """What the CT shows of the bones: the blurred peak of plates by thickness class (HU at the
+    wall's middle), and the cortex peak of thick parts (the largest HU within 3 mm under the
+    surface where the wall is thicker than 8 mm)."""
+    out = {}
+    for b in model.bones:
+        p, inward, t, _ = samples[b.name]
+        res = {}
+        wall = np.isfinite(t)
+        for lo, hi in ((0.0, 1.0), (1.0, 2.0), (2.0, 3.0)):
+            sel = wall & (t >= lo) & (t < hi)
+            if sel.sum() >= 20:
+                mid = p[sel] + 0.5 * t[sel, None] * inward[sel]
+                v = sample_ct(ct, mid)
+                res[f"plate_{lo:g}-{hi:g}mm_mid_HU_p10_p50_p90"] = [float(x) for x in np.percentile(v, [10, 50, 90])]
+                res[f"plate_{lo:g}-{hi:g}mm_frac_below_300HU"] = float((v < 300).mean())
+                res[f"plate_{lo:g}-{hi:g}mm_n"] = int(sel.sum())
+        thick = ~wall
+        if thick.sum() >= 20:
+            depths = np.linspace(0.0, 3.0, 7)
+            v = np.max([sample_ct(ct, p[thick] + d * inward[thick]) for d in depths], axis=0)
+            res["thick_cortex_peak_HU_p10_p50_p90"] = [float(x) for x in np.percentile(v, [10, 50, 90])]
+        out[b.name] = res
+    return out
+
+
+# ---------------------------------------------------------------------------- entry points
+
+@dataclass
+class AnatomicalPhantom:
+    """ct: int16 HU (array (z, y, x)), physical LPS geometry (the real CT's place, possibly
+    oblique); labels: uint8 AI-style label map of every bone of the case on the CT grid;
+    truths: {label value: Surface (LPS mm, closed, outward)}; names: {label value: bone name};
+    info: the case parameters and derived figures (``info["_model"]`` is the geometry, not
+    JSON-serialisable: drop keys starting with "_")."""
+
+    ct: sitk.Image | None
+    labels: sitk.Image | None
+    truths: dict
+    names: dict
+    info: dict = field(default_factory=dict)
+
+    def sdf(self, label: int, physical_points) -> np.ndarray:
+        """F of a bone (mm, negative inside; a distance near the surface) at physical LPS points
+        (n, 3) -> (n,): the trilinear interpolant of its model-grid values, whose zero set the
+        truth is; large positive beyond the bone's crop."""
+        model = self.info["_model"]
+        b = next(b for b in model.bones if b.label == int(label))
+        return model.sample_F(b, model.to_local(physical_points))
+
+    def labels_ai(self, grid_mm=None, steal_mm=None, subsamples: int = 3, seed: int | None = None,
+                  on_ct_grid: bool = True) -> sitk.Image:
+        """See :func:`labels_ai`."""
+        return labels_ai(self, grid_mm=grid_mm, steal_mm=steal_mm, subsamples=subsamples, seed=seed,
+                         on_ct_grid=on_ct_grid)
+
+
+def _info(case, seed, cfg, model, meta, joints, truths, samples):
+    from BoneWatertightLib.mesh import enclosed_volume
+
+    info = {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.items() if not k.startswith("_")}
+    if info.get("joint_gaps"):
+        info["joint_gaps"] = {f"{a}/{b}": g for (a, b), g in info["joint_gaps"].items()}
+    for b in model.bones:
+        meta[b.name]["volume_ml"] = float(enclosed_volume(truths[b.label].vertices, truths[b.label].faces) / 1000.0)
+        meta[b.name]["label_ml"] = float(np.isin(model.lab, BONES[b.name]["values"]).sum()
+                                         * np.prod(model.src_spacing) / 1000.0)
+    info.update(
+        case=case, seed=int(seed), slice_thickness=cfg["slice_thickness"] or cfg["slice_spacing"],
+        ct_size=[int(v) for v in model.ct_size], ct_spacing=[float(v) for v in model.ct_spacing],
+        bones_info=meta, joints=_joint_figures(model, truths, joints),
+        plates=_plate_figures(model, samples),
+        truth_note=("zero set of F (flying edges of its samples on the model grid, vertices on the "
+                    "zero set of F's trilinear interpolant)"),
+        source_folder=SOURCES[cfg["source"]][0] or os.path.relpath(SAMPLE_DIR, ROOT),
+        timing=dict(model.timing), _model=model)
+    return info
+
+
+def make_truth(case: str = "pelvis_3mm", seed: int = 0, **overrides) -> AnatomicalPhantom:
+    """The truths of a case without the CT and the labels (``ct`` and ``labels`` are None):
+    the same meshes as :func:`make_anatomical` gives, for the geometry's figures (info: bones,
+    joints, plates)."""
+    t0 = time.perf_counter()
+    cfg = _config(case, overrides)
+    model, truths, meta, joints = _build_geometry(cfg, seed)
+    names = {b.label: b.name for b in model.bones}
+    info = _info(case, seed, cfg, model, meta, joints, truths, _thickness_all(model, truths))
+    info["timing"]["total"] = time.perf_counter() - t0
+    info["peak_rss_mb"] = _peak_mb()
+    return AnatomicalPhantom(ct=None, labels=None, truths=truths, names=names, info=info)
+
+
+def make_anatomical(case: str = "pelvis_3mm", seed: int = 0, **overrides) -> AnatomicalPhantom:
+    """An anatomical CT phantom with exact truths (see the module doc).
+
+    Parameters
+    ----------
+    case : str
+        A key of :data:`CASES`.
+    seed : int
+        Seeds the shape perturbation, the plate thickness field, the HU fields, the noise and
+        the label grid's phase (held-out seeds change all of them).
+    **overrides
+        Any key of ``_BASE`` (e.g. ``pixel=1.0``, ``joint_gap_mm=2.0``, ``noise=30``,
+        ``direction_angles_deg=(10, 0, 5)``, ``steal_mm=("femur_right", "hip_right", 3.0)``).
+
+    Returns
+    -------
+    AnatomicalPhantom
+        ct (int16, array (z, y, x)), labels (uint8, on the CT grid), truths, names, info
+        (``info["bones_info"]``: per bone genus (and the smoothed label's), volume, faces;
+        ``info["joints"]``: per pair the requested gap and the truths' smallest distance;
+        ``info["plates"]``: thickness distributions; ``info["ct_figures"]``: plate and cortex
+        peaks on the CT; ``info["timing"]``, ``info["peak_rss_mb"]``).
+
+    Raises
+    ------
+    DataMissing
+        The case's source data (../shared/data) is absent.
+    ValueError
+        Unknown case or parameter, or a plate thinner than the model grid can hold.
+    """
+    t0 = time.perf_counter()
+    cfg = _config(case, overrides)
+    model, truths, meta, joints = _build_geometry(cfg, seed)
+    names = {b.label: b.name for b in model.bones}
+    ct, form = _form_ct(model)
+    t1 = time.perf_counter()
+    samples = _thickness_all(model, truths)
+    info = _info(case, seed, cfg, model, meta, joints, truths, samples)
+    info["timing"]["figures"] = time.perf_counter() - t1
+    ph = AnatomicalPhantom(ct=ct, labels=None, truths=truths, names=names, info=info)
+    t1 = time.perf_counter()
+    ph.labels = labels_ai(ph)
+    info["timing"]["labels"] = time.perf_counter() - t1
+    info["timing"]["ct"] = form["seconds"]
+    info["ct_fine_step_mm"] = form["fine_step_mm"]
+    info["ct_figures"] = _ct_figures(model, ct, samples)
+    info["timing"]["total"] = time.perf_counter() - t0
+    info["peak_rss_mb"] = _peak_mb()
+    return ph
+
+
+if __name__ == "__main__":
+    import json
+
+    for name in (sys.argv[1:] or ["sample_L3L4"]):
+        ph = make_anatomical(name)
+        info = {k: v for k, v in ph.info.items() if not k.startswith("_")}
+        print(name, ph.ct.GetSize(), ph.ct.GetSpacing(), json.dumps(info, indent=1, default=str))
