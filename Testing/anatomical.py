@@ -140,11 +140,16 @@ class DataMissing(FileNotFoundError):
 SOURCES = {
     "pelvis": ("ts_example_ct_abdomen_pelvis_3mm", "ct.nrrd", "bones_labels.nrrd"),
     "sample": (None, "ct.nrrd", "labels.nrrd"),
+    # No scapula label exists in the shared data (the CT that shows scapulae has no reference):
+    # a synthetic right scapula + proximal humerus label on a 1.5 mm grid, see _synthetic_shoulder.
+    "shoulder": ("synthetic", None, None),
 }
 
 
 def _source_paths(source: str):
     folder, ct, lab = SOURCES[source]
+    if folder == "synthetic":
+        return None, None
     base = SAMPLE_DIR if folder is None else os.path.join(data_dir(), folder)
     paths = os.path.join(base, ct), os.path.join(base, lab)
     missing = [p for p in paths if not os.path.exists(p)]
@@ -190,6 +195,8 @@ BONES = {
     "L3": dict(values=(29,), kind="vertebra", extend_mm=0.0),
     "L4": dict(values=(28,), kind="vertebra", extend_mm=0.0),
     "L5": dict(values=(27,), kind="vertebra", extend_mm=0.0),
+    "scapula_right": dict(values=(72,), kind="scapula", extend_mm=0.0),
+    "humerus_right": dict(values=(70,), kind="humerus", extend_mm=0.0),
 }
 
 _BASE = dict(
@@ -235,6 +242,14 @@ CASES: dict[str, dict] = {
     "lumbar_0p7x2p5": dict(bones=("L3", "L4", "L5"), pixel=0.7, slice_spacing=2.5,
                            psf_sigma=0.5, noise=25.0, label_grid=1.5, model_grid=0.4,
                            joint_gap_mm=1.5, direction_angles_deg=(6.0, -4.0, 9.0)),
+    # (c) scapula-like: a synthetic right scapula + humerus (no scapula label exists in the
+    # data), the blade thinned like the iliac wing; the glenohumeral joint 2.5 mm.
+    "scapula_3mm": dict(source="shoulder", bones=("scapula_right", "humerus_right"), pixel=3.0,
+                        slice_spacing=3.0, psf_sigma=0.6, noise=20.0, label_grid=3.0,
+                        label_sigma=1.0, joint_gap_mm=2.5),
+    "scapula_0p7x2p5": dict(source="shoulder", bones=("scapula_right", "humerus_right"), pixel=0.7,
+                            slice_spacing=2.5, psf_sigma=0.5, noise=25.0, label_grid=1.5,
+                            label_sigma=1.0, joint_gap_mm=2.5, direction_angles_deg=(0.0, 8.0, -12.0)),
     # CI: L3 + L4 of the bundled sample (always available), coarse and quick.
     "sample_L3L4": dict(source="sample", bones=("L3", "L4"), pixel=1.5, slice_spacing=3.0,
                         psf_sigma=0.6, noise=15.0, label_grid=3.0, model_grid=0.5,
@@ -362,6 +377,106 @@ def _peak_mb() -> float:
     return float("nan")
 
 
+# ---------------------------------------------------------------------------- synthetic shoulder
+
+def _thick_triangles(p, tris, r):
+    """min over triangles (k, 3, 3) of (distance of p (n, 3) to the triangle) - r."""
+    from metrics import closest_point_on_triangles
+
+    out = np.full(len(p), np.inf)
+    for t in tris:
+        a, b, c = (np.broadcast_to(np.asarray(v, float), p.shape) for v in t)
+        cp, _ = closest_point_on_triangles(p, a, b, c)
+        out = np.minimum(out, np.linalg.norm(cp - p, axis=1) - r)
+    return out
+
+
+def _capsule(p, a, b, r):
+    a = np.asarray(a, float)
+    ba = np.asarray(b, float) - a
+    t = np.clip((p - a) @ ba / (ba @ ba), 0.0, 1.0)
+    return np.linalg.norm(p - a - t[:, None] * ba, axis=1) - r
+
+
+def _smin(a, b, k):
+    hh = np.clip(0.5 + 0.5 * (b - a) / k, 0.0, 1.0)
+    return b + (a - b) * hh - k * hh * (1.0 - hh)
+
+
+_SHOULDER = {}
+
+
+def _synthetic_shoulder():
+    """A right scapula and proximal humerus as a coarse label map (1.5 mm, like an AI label of
+    a 1.5 mm CT) and a soft-tissue background, in place of real data (none has a scapula
+    label). Local frame (u lateral, v posterior, w superior, mm); LPS x = -u (the patient's
+    right), y = v, z = w, identity direction.
+
+    Scapula: the blade, a bent quadrilateral plate 4.5 mm thick in the label (superior angle,
+    coracoid base, glenoid neck, inferior angle), a 10 mm lateral border, 5 / 4 mm medial and
+    superior borders, the spine (a 7 mm plate rising 6-26 mm posteriorly), the acromion (8 mm
+    plate over the joint), the coracoid (10 mm rod) and the glenoid (an ellipsoid lump facing
+    laterally); humerus: head (sphere r 24 mm) touching the glenoid as a label would, neck,
+    greater tubercle and 85 mm of shaft. Background: muscle 45 HU, subcutaneous fat
+    (-100 HU) and air behind the back, the lung (-850 HU) in front of the chest wall (no ribs:
+    the case has no other bone)."""
+    if "images" in _SHOULDER:
+        return _SHOULDER["images"]
+    sp = 1.5
+    lo = np.array([-20.0, -60.0, -160.0])  # u, v, w
+    hi = np.array([185.0, 70.0, 25.0])
+    n = np.floor((hi - lo) / sp).astype(int) + 1
+    us, vs, ws = (lo[a] + sp * np.arange(n[a]) for a in range(3))
+    W, V, U = np.meshgrid(ws, vs, us, indexing="ij")
+    p = np.column_stack([U.ravel(), V.ravel(), W.ravel()])
+
+    def bend(u, w):  # the blade follows the rib cage (concave anteriorly)
+        return 0.0045 * (u - 55.0) ** 2 - 8.0 + 0.0008 * (w + 60.0) ** 2
+
+    def pt(u, w, dv=0.0):
+        return (u, bend(u, w) + dv, w)
+
+    S, C, G, I, M = (5, 0), (65, -8), (88, -32), (25, -125), (48, -55)
+    blade = _thick_triangles(p, [(pt(*M), pt(*a), pt(*b)) for a, b in ((S, C), (C, G), (G, I), (I, S))], 2.25)
+    borders = np.minimum.reduce([_capsule(p, pt(*I), pt(*G), 5.0), _capsule(p, pt(*S), pt(*I), 2.5),
+                                 _capsule(p, pt(*S), pt(*C), 2.0)])
+    A0, B0 = pt(5, -30), pt(84, -10)
+    spine = _thick_triangles(p, [(A0, B0, pt(84, -10, 26.0)), (A0, pt(84, -10, 26.0), pt(5, -30, 6.0))], 3.5)
+    acromion = _thick_triangles(p, [(pt(84, -10, 24.0), (126, 18, 10), (133, 6, 2)),
+                                    (pt(84, -10, 24.0), (133, 6, 2), (104, 12, -2))], 4.0)
+    coracoid = np.minimum(_capsule(p, pt(66, -8), (80, -32, -14), 5.0), _capsule(p, (80, -32, -14), (95, -36, -26), 4.5))
+    q = (p - np.array([97.0, 0.5, -36.0])) / np.array([11.0, 14.0, 20.0])
+    glenoid = (np.linalg.norm(q, axis=1) - 1.0) * 11.0
+    scap = _smin(_smin(_smin(blade, borders, 2.5), _smin(spine, acromion, 3.0), 3.0),
+                 _smin(coracoid, glenoid, 3.0), 3.0)
+    scap = _smin(scap, _capsule(p, pt(*G), (97.0, 0.5, -36.0), 7.0), 3.0)
+    head_c = np.array([131.0, 0.5, -36.0])
+    hum = np.linalg.norm(p - head_c, axis=1) - 24.0
+    hum = _smin(hum, _capsule(p, head_c, (140.0, 3.0, -62.0), 15.0), 4.0)
+    hum = _smin(hum, np.linalg.norm(p - np.array([150.0, -4.0, -30.0]), axis=1) - 10.0, 4.0)
+    hum = _smin(hum, _capsule(p, (140.0, 3.0, -62.0), (142.0, 3.0, -148.0), 11.0), 5.0)
+    lab = np.zeros(len(p), np.uint8)
+    lab[scap < 0] = BONES["scapula_right"]["values"][0]
+    lab[(hum < 0) & (scap >= 0)] = BONES["humerus_right"]["values"][0]
+    # background: skin behind the back at v = 58, fat 10 mm under it, lung in front of v = -30,
+    # the arm's skin lateral to u = 175
+    ct = np.full(len(p), SOFT_TISSUE_HU, np.float32)
+    ct[(p[:, 1] > 48.0) | (p[:, 0] > 165.0)] = -100.0
+    ct[(p[:, 1] > 58.0) | (p[:, 0] > 175.0)] = -1000.0
+    ct[(p[:, 1] < -30.0 - 0.002 * (p[:, 0] - 40.0) ** 2) & (p[:, 0] < 120.0)] = -850.0
+    shape = tuple(n[::-1])
+    images = []
+    for arr in (ct.reshape(shape), lab.reshape(shape)):
+        img = sitk.GetImageFromArray(arr)
+        img.SetSpacing([sp] * 3)
+        # LPS x = -u: the index axis i runs towards -x (direction diag(-1, 1, 1))
+        img.SetDirection([-1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
+        img.SetOrigin([-lo[0] - 60.0, lo[1] - 150.0, lo[2] + 1200.0])
+        images.append(img)
+    _SHOULDER["images"] = tuple(images)
+    return _SHOULDER["images"]
+
+
 # ---------------------------------------------------------------------------- the model
 
 @dataclass
@@ -393,8 +508,11 @@ class _Model:
         self.seed = int(seed)
         self.h = float(cfg["model_grid"])
         ct_path, lab_path = _source_paths(cfg["source"])
-        self.src_ct = sitk.ReadImage(ct_path)
-        self.src_lab = sitk.ReadImage(lab_path)
+        if ct_path is None:
+            self.src_ct, self.src_lab = _synthetic_shoulder()
+        else:
+            self.src_ct = sitk.ReadImage(ct_path)
+            self.src_lab = sitk.ReadImage(lab_path)
         self.src_spacing = np.array(self.src_lab.GetSpacing(), float)
         self.src_origin = np.array(self.src_lab.GetOrigin(), float)
         self.src_dir = np.array(self.src_lab.GetDirection(), float).reshape(3, 3)
@@ -536,6 +654,53 @@ class _Upsampler:
         return full[z0 % 2:]
 
 
+def _protect_medial(sdf, w, g2, rho, n, idx, hg, sigma_eff, rounds=3):
+    """Keep the label's medial surface inside the thinned bone (no hole may open).
+
+    Thinning keeps a node where (1 - w) sdf + w (d_m - rho) < 0. On a clean plate the medial
+    surface has d_m = 0 and stays inside; where plates meet (a T-junction, the spine on the
+    scapular blade) the medial distance from the structure tensor's normal is unreliable and a
+    medial node may be removed, which opens a hole. Medial nodes = nodes at least one geometry
+    node deep whose depth (-sdf) is not exceeded one node away along +-n (the plate's normal);
+    where thinning (evaluated on the geometry grid) removes one, w is set to 0 in a 2-node
+    neighbourhood (smoothly), ``rounds`` times. Returns (w, number of nodes protected)."""
+    from scipy import ndimage
+    from scipy.special import erfinv
+
+    depth = -sdf
+    pts = np.column_stack(idx).astype(np.float32)  # (z, y, x) node coordinates
+    step = n[:, ::-1]  # n is x-y-z; node coordinates are z-y-x (isotropic grid: one node = hg)
+    dp = ndimage.map_coordinates(depth, (pts + step).T, order=1, mode="nearest")
+    dm = ndimage.map_coordinates(depth, (pts - step).T, order=1, mode="nearest")
+    d0 = depth[idx]
+    medial = (d0 >= dp) & (d0 >= dm) & (d0 > hg)
+    # The medial surface passes up to half a node from a medial node: evaluate the thinning at
+    # the depth maximum along n (parabola through the three depths), not at the node.
+    curv = dp + dm - 2.0 * d0
+    delta = np.where(curv < -1e-6, 0.5 * (dm - dp) / np.where(curv < -1e-6, curv, -1.0), 0.0)
+    delta = np.clip(delta, -0.5, 0.5)[medial]
+    at = (pts[medial] + delta[:, None] * step[medial]).T
+    sub = tuple(a[medial] for a in idx)
+    sdf_m = ndimage.map_coordinates(sdf, at, order=1, mode="nearest")
+    g2_m = ndimage.map_coordinates(g2, at, order=1, mode="nearest")
+    rho_m = ndimage.map_coordinates(rho, at, order=1, mode="nearest")
+    dmed = sigma_eff * math.sqrt(2.0) * erfinv(np.sqrt(np.clip(g2_m, 0.0, 0.999)))
+    total = 0
+    for _ in range(rounds):
+        wi = ndimage.map_coordinates(w, at, order=1, mode="nearest")
+        thin = (1.0 - wi) * sdf_m + wi * (dmed - rho_m)
+        bad = (thin >= 0.0) & (wi > 0)
+        if not bad.any():
+            break
+        total += int(bad.sum())
+        mask = np.zeros(sdf.shape, np.float32)
+        mask[tuple(a[bad] for a in sub)] = 1.0
+        # w -> 0 within one node of a removed medial node, back to its value over ~2 more
+        mask = np.clip(2.0 * ndimage.gaussian_filter(ndimage.maximum_filter(mask, size=3), 1.0), 0.0, 1.0)
+        w = (w * (1.0 - mask)).astype(np.float32)
+    return w, total
+
+
 def _make_bone(model, index, name, src_mask, idx0, start, shape):
     """Steps 1-4 of the module doc for one bone on the crop (start, shape) of the model grid.
 
@@ -619,12 +784,18 @@ def _make_bone(model, index, name, src_mask, idx0, start, shape):
         g2[idx] = gn * gn
         sheet = np.zeros_like(sdf)
         sheet[idx] = np.clip(1.0 - mu[:, 1] / np.maximum(mu[:, 2], 1e-6), 0.0, 1.0)
+        n_w0 = int((w > 0.5).sum())
         w *= _smoothstep(0.35, 0.65, sheet).astype(np.float32)
-        del grad, mu, vec, n, gn, sheet, zone, idx
+        stats["plate_nodes_by_thickness_sheet"] = [n_w0, int((w > 0.5).sum())]
+        del grad, mu, gn, sheet
         t_min, t_max = (cfg["plate_scale"] * v for v in kind["plate"])
         s = np.clip(0.35 + 0.3 * _Lattice(model.rng(2, index), lo_q, hi_q, 25.0).grid(*coarse)
                     + 0.25 * (R - r_a) / (r_b - r_a), 0.0, 1.0)
         rho = (0.5 * (t_min + (t_max - t_min) * s)).astype(np.float32)
+        w, n_prot = _protect_medial(sdf, w, g2, rho, n, idx, hg, math.hypot(float(cfg["medial_sigma"]), hg))
+        stats["protected_medial_nodes"] = n_prot
+        stats["plate_nodes_by_thickness_sheet"].append(int((w > 0.5).sum()))
+        del n, vec, zone, idx
         stats["label_half_thickness_in_plates_mm"] = (
             [float(v) for v in np.percentile(R[w > 0.5], [5, 50, 95])] if (w > 0.5).any() else None)
         up.add("w", w)
@@ -871,7 +1042,10 @@ def _build_geometry(cfg, seed):
     t0 = time.perf_counter()
     for b in model.bones:
         v, f = _zero_set_mesh(b.F, h, model.node_q(b.start))
-        truths[b.label] = Surface(model.to_physical(v), f, "LPS")
+        vp = model.to_physical(v)
+        if np.linalg.det(model.direction) < 0:  # a left-handed frame turns the faces inside out
+            f = f[:, ::-1].copy()
+        truths[b.label] = Surface(vp, f, "LPS")
         g, nc = _genus(v, f)
         meta[b.name] = {"label": b.label, "genus": g, "n_components": nc,
                         "genus_smoothed_label": genus0[b.name][0],
