@@ -383,11 +383,15 @@ def _thick_triangles(p, tris, r):
     """min over triangles (k, 3, 3) of (distance of p (n, 3) to the triangle) - r."""
     from metrics import closest_point_on_triangles
 
-    out = np.full(len(p), np.inf)
+    out = np.full(len(p), 1e3)
     for t in tris:
-        a, b, c = (np.broadcast_to(np.asarray(v, float), p.shape) for v in t)
-        cp, _ = closest_point_on_triangles(p, a, b, c)
-        out = np.minimum(out, np.linalg.norm(cp - p, axis=1) - r)
+        t = np.asarray(t, float)
+        # only the points near the triangle (its box + r + 6 mm); the rest stay far away
+        near = np.flatnonzero(np.all((p > t.min(0) - r - 6.0) & (p < t.max(0) + r + 6.0), axis=1))
+        q = p[near]
+        a, b, c = (np.broadcast_to(v, q.shape) for v in t)
+        cp, _ = closest_point_on_triangles(q, a, b, c)
+        out[near] = np.minimum(out[near], np.linalg.norm(cp - q, axis=1) - r)
     return out
 
 
