@@ -22,70 +22,92 @@ angles the phantom lies exactly where the real CT's bones are; with angles the v
 the same and the object is rotated in physical space (as Testing/phantoms.py does). Arrays are
 (z, y, x); point arrays (n, 3) x-y-z in mm.
 
-How a bone is made (:func:`_make_bone`), all on the model grid of step h
--------------------------------------------------------------------------
-1. **Label -> smooth shape.** The bone's voxels of the 3 mm source label (several label values
-   may form one bone: sacrum = sacrum + S1) as a 0/1 box function, blurred analytically by a
-   Gaussian of ``label_sigma`` mm (the exact blur of the voxel boxes: a tensor product of
-   erf-differences, no resampling) -> P in [0, 1] at the model nodes. Where the source volume
-   cuts a bone (the femur below the lesser trochanter, the ischium), the label's last slice is
-   first repeated for ``extend_mm`` so that the bone ends in a rounded stub inside the phantom.
-2. **SDF.** Nodes with P > 0.5 are inside; the signed Euclidean distance (the ``edt`` package,
-   voxel centres shifted by h / 2 to the voxel faces) smoothed by a Gaussian of h gives sdf0
-   (mm, negative inside, 1-Lipschitz). Its zero set is free of the 3 mm stair steps.
-3. **Seeded geometry perturbation:** sdf0 += ``perturb_mm`` * f(q), f a smooth random field
-   (cubic B-spline lattice, 40 mm spacing, unit std): +-0.3 mm of low-frequency shape change
-   per seed.
-4. **Thin plates** (bones whose kind has ``plate``): the 3 mm labels are 6-9 mm thick where the
-   real bone is a 1-3 mm plate. Local half-thickness R(q) = the largest depth (-sdf0) within a
-   cube of half-width ``r_b + 1`` mm (an upper bound of the inscribed-ball radius, exact up to
-   that width). Plate weight w = 1 - smoothstep(r_a, r_b, R) (1 in plates, 0 in bodies).
-   Distance to the plate's medial surface d_m: from the Gaussian-smoothed SDF
-   D_s = G_sm * sdf0 (sm = ``medial_sigma`` mm): for a plate (SDF = |u| - r, u the coordinate
-   across it) |grad D_s| = erf(|u| / (sm sqrt 2)) exactly, so d_m = sm sqrt(2) erfinv(|grad D_s|)
-   (accurate for |u| < ~2 sm, monotone beyond). Target half-thickness rho(q) = t(q) / 2 with
-   t between the kind's ``plate`` = (t_min, t_max) mm, set by a smooth random field (25 mm
-   lattice) and by R (thinner where the label is thinner). The thinned bone:
-   F = max(sdf0, (1 - w) sdf0 + w (d_m - rho)). Since F >= sdf0 the plate stays inside the
-   label's shape; since d_m - rho = -rho < 0 on the medial surface, the plate never opens a
-   hole (the medial surface stays inside); the plate is 2 rho thick where w = 1 and thickens
-   smoothly into the bodies.
-5. **Joints.** For every pair of bones (a, b) of the case, psi = (sdf0_a - sdf0_b) / 2
-   (1-Lipschitz, zero on their bisector) carves both: F_a = smax(F_a, psi + g'/2),
-   F_b = smax(F_b, -psi + g'/2) (polynomial smooth max, radius 1 mm: rounded joint margins),
-   g' = 1.1 g for the pair's gap g (``joint_gap_mm`` / ``joint_gaps``); so a and b are at least
-   g apart wherever they met, with parallel articular surfaces. The smallest distance of the
-   two truth meshes is measured and stored (``info["joints"]``).
-6. Only the largest component of {F < 0} is kept and enclosed cavities are filled.
+How a bone is made (:func:`_make_bone`, :func:`_carve_joints`)
+---------------------------------------------------------------
+The smooth fields are computed on a geometry grid of step hg = 2 h (nothing in a 3 mm label is
+finer) and brought to the model grid by separable cubic convolution (Keys; exact for
+quadratics); F is composed from them node by node on the model grid.
 
-**Truth** = the zero set of F: flying edges of F's samples on the model grid (the
-vertices lie exactly on the zero set of F's trilinear interpolant, the triangle interiors
-within ~h^2 / (8 R_curv) of it), faces outward, in physical LPS. ``info["bones"][name]["genus"]``
-is checked against the genus of sdf0's zero set before thinning and carving
-(``genus_smoothed_label``): thinning must not open holes.
+1. **Label -> smooth shape.** The bone's voxels of the source label (several label values may
+   form one bone: sacrum = sacrum + S1) as a 0/1 box function, blurred analytically by a
+   Gaussian of ``label_sigma`` mm (the exact blur of the voxel boxes: a tensor product of
+   erf-differences, no resampling). Where the source volume cuts a bone at its lowest slice
+   (the femur below the lesser trochanter, the ischium), that slice is first repeated for the
+   bone's ``extend_mm`` (femur 24 mm, hip 6 mm), so the bone ends in a rounded stub inside the
+   phantom's field of view.
+2. **SDF.** Nodes where the blur exceeds 0.5 are inside; their signed Euclidean distance (the
+   ``edt`` package, node centres moved to the voxel faces by h/2), smoothed by a Gaussian of
+   one geometry node, is sdf0 (mm, negative inside, 1-Lipschitz), free of the label's stair steps.
+3. **Seeded perturbation:** sdf0 += ``perturb_mm`` x f, f a smooth random field of unit std
+   (cubic B-spline lattice, 40 mm): a low-frequency shape change per seed.
+4. **Thin plates** (kinds with ``plate`` = (t_min, t_max) mm; the 3 mm labels are 6-12 mm
+   thick where the real bone is a 1-3 mm plate):
+
+   * local half-thickness R = the largest depth (-sdf0) within a cube of half-width r_b + 1 mm
+     (an upper bound of the inscribed-ball radius, exact up to that width); plate weight
+     w = 1 - smoothstep(r_a, r_b, R) (kind's r_a, r_b);
+   * D_s = G(``medial_sigma``) * sdf0 and its gradient; the plate's normal n = principal
+     eigenvector of the structure tensor G(2 mm) * (grad D_s grad D_s^T) (gradients are +-n on
+     a plate's two faces); sheetness 1 - m2/m1 of its two largest eigenvalues (~1 on a plate,
+     ~0 on a rod: the pubic rami or a process are not turned into wires); w *= smoothstep(0.35,
+     0.65, sheetness);
+   * distance to the medial surface d_m = s sqrt(2) erfinv(|grad D_s . n|) with
+     s = sqrt(medial_sigma^2 + hg^2): exact for a flat plate, whose SDF |u| - r smoothed by a
+     Gaussian of s has |dD/du| = erf(|u| / (s sqrt 2)) for any r; only the component along n
+     counts, so a wedge (a plate thickening) is not pierced; |grad D_s . n|^2 (smooth through
+     the medial surface) is what is interpolated to the model grid;
+   * target half-thickness rho = t / 2, t = t_min + (t_max - t_min) s', s' = clip(0.35 + 0.3 f2
+     + 0.25 (R - r_a) / (r_b - r_a)), f2 a seeded 25 mm field: thinner where the label is thinner;
+   * **F = max(sdf0, (1 - w) sdf0 + w (d_m - rho))**: F >= sdf0, so the plate stays inside the
+     label's shape; on the medial surface d_m = 0, so it stays inside the bone; the plate is 2 rho
+     thick where w = 1 and thickens smoothly into the bodies;
+   * protection (:func:`_protect_medial`): where plates meet (T-junctions) d_m is unreliable;
+     medial nodes (depth maximal along n) that the thinning would remove get w = 0 around them,
+     so no hole opens. The truth's genus is checked against the genus of sdf0's zero set
+     (``info["bones_info"][name]["genus_smoothed_label"]``).
+5. **Joints.** For every pair of bones whose sdf0 sum drops below 1.1 g + 2 k:
+   psi = (sdf0_a - sdf0_b) / 2 (1-Lipschitz, zero on their bisector) carves both:
+   F_a = smax(F_a, psi + 0.55 g), F_b = smax(F_b, -psi + 0.55 g) (polynomial smooth max,
+   k = ``joint_margin_mm``: rounded joint margins), g = ``joint_gaps[(a, b)]`` or
+   ``joint_gap_mm``: a and b end at least g apart (1.1 g leaves room for the perturbation's
+   Lipschitz excess), with parallel articular surfaces. The smallest distance of the two truth
+   meshes is measured exactly and stored (``info["joints"]``).
+6. Only the largest component of {F < 0} is kept; enclosed cavities are filled.
+
+**Truth** = the zero set of F: flying edges of F's samples on the model grid (inside negative,
+which keeps plates >= h connected; vertices exactly on the zero set of F's trilinear
+interpolant, the triangle interiors within ~h^2 / (8 R_curv)), faces outward, physical LPS.
+``info["plates"]`` gives the truth's wall thickness by ray casting (:func:`thickness_samples`):
+per bone the area fractions thinner than 1 / 2 / 3 mm, the plate zone's thickness percentiles
+and the agreement with 2 rho where w >= 0.95.
 
 HU model and CT formation (:func:`_form_ct`)
 --------------------------------------------
-On a fine grid (the model grid, or every second node of it for CT voxels >= 1.5 mm): the
-background is the real CT of the source (its bones and everything > 120 HU replaced by soft
-tissue at 45 HU, clipped to [-1000, 100], smoothed by one source voxel): the real body outline
-with air outside, subcutaneous and intermuscular fat (-100), muscle and organs (30-60), bowel
-gas. Bone: occupancy o = clip(0.5 - F / w_f, 0, 1) (w_f the fine step: a box anti-aliasing that
-keeps a sub-voxel plate's HU x thickness exact), core o_c = clip(0.5 - (F + t_c) / w_f, 0, 1);
-HU = bg + o (cortex - bg) + o_c (trabecular - cortex). Cortex thickness t_c: the kind's
-``cortex`` mm times (1 + 0.35 f), clipped to [0.3, 3] (a plate thinner than 2 t_c is all cortex);
-cortex HU 1000-1800 (kind's mean + 220 f); trabecular HU (kind's mean + 50 f + 35 texture,
-~100-350, +60 just under the cortex); f smooth random fields (seeded), texture a 2 mm lattice.
-Between two bones of a pair, where F_a + F_b < L (L = g + 1 mm; a vertebral disc: 10 mm) the
-space is cartilage (100-140 HU) or disc (70-100 HU). The fine image is blurred and sampled in
-one linear operator per axis: in-plane the pixel aperture (box of the pixel size) convolved
-with a Gaussian PSF (``psf_sigma``), along z the slice profile (box of ``slice_thickness``
-convolved with a Gaussian of 0.15 x thickness); then Gaussian noise (``noise`` HU), int16.
+On a fine grid (the model grid, or every second node of it when pixel and slice thickness are
+>= 3 h): the background is the source's real CT (its bones and everything above 120 HU set
+to 45 HU, clipped to [-1000, 100], smoothed by one source voxel): the real body outline with
+air outside, subcutaneous and intermuscular fat, muscle and organs, bowel gas (the synthetic
+shoulder: muscle, fat and air behind the back, lung in front). Bone: occupancy
+o = clip(0.5 - F / w_f, 0, 1) (w_f the fine step: a box anti-aliasing that keeps a sub-voxel
+plate's HU x thickness exact), core o_c = clip(0.5 - (F + t_c) / w_f, 0, 1);
+HU = bg + o (cortex - bg) + o_c (trabecular - cortex). Cortex thickness t_c = kind's ``cortex``
+x (1 + 0.35 f), clipped to [0.3, 3] mm (a plate thinner than 2 t_c is all cortex); cortex HU =
+kind's ``cortex_hu`` + 220 f - 350 w, clipped to [1000, 1800] (thin plates are the less dense);
+trabecular HU = kind's ``trab_hu`` + 50 f + 35 texture + 60 exp(-(depth - t_c) / 1.5 mm)
+(denser under the cortex); f seeded smooth fields (18-25 mm), texture a periodic field of
+0.8 mm correlation. The kinds' HU and thicknesses are calibrated against the real 3 mm CT the
+shapes come from (its thin iliac plates peak at ~300 HU, its trabecular bone is 100-200 HU).
+Between two bones where F_a + F_b < L (L = g + 1 mm; between vertebrae the disc, L =
+``disc_mm``) the space is cartilage (``cartilage_hu`` +- 18) or disc (``disc_hu`` +- 12). The
+fine image is blurred and sampled in one separable linear operator: in-plane the pixel aperture
+(a box of the pixel size) convolved with a Gaussian PSF (``psf_sigma``), along z the slice
+profile (a box of ``slice_thickness`` convolved with a Gaussian of 0.15 x thickness); then
+Gaussian noise (``noise`` HU), rounded, int16.
 
-**Labels** (AI-style, :func:`labels_ai`): majority vote of the truths (trilinear F < 0) over
-3 x 3 x 3 points in every voxel of a coarse grid (``label_grid`` mm, random phase), then
-nearest-neighbour onto the CT grid; optionally ``steal_mm``: voxels of one bone within that
-distance of another given to the other.
+**Labels** (AI-style, :func:`labels_ai`): majority vote of the truths (F < 0) over 3 x 3 x 3
+points in every voxel of a coarse grid (``label_grid`` mm, random phase), nearest-neighbour onto
+the CT grid; optionally ``steal_mm``: voxels of one bone within that distance of another given
+to the other.
 
 Random streams: seeded by ``[seed, stream, bone index]``: geometry perturbation (1), plate
 thickness field (2), HU fields (3), CT noise (4), label grid phase (5). Held-out seeds change
@@ -606,21 +628,6 @@ def _grad_norm(a, h, chunk=48):
         s = slice(z0 - lo, z0 - lo + (z1 - z0))
         out[z0:z1] = np.sqrt(gz[s] ** 2 + gy[s] ** 2 + gx[s] ** 2)
     return out
-
-
-def _keys_matrix(x_out, x0, step, n):
-    """(len(x_out), n): cubic convolution (Keys, a = -0.5: interpolating, C1, exact for
-    quadratics) of samples at x0 + step * i, indices clamped at the ends."""
-    t = (np.asarray(x_out, float) - x0) / step
-    i = np.floor(t).astype(int)
-    f = t - i
-    ws = (((-0.5 * f + 1.0) * f - 0.5) * f, (1.5 * f - 2.5) * f * f + 1.0,
-          ((-1.5 * f + 2.0) * f + 0.5) * f, (0.5 * f - 0.5) * f * f)
-    m = np.zeros((len(t), n), np.float32)
-    r = np.arange(len(t))
-    for k, w in zip((-1, 0, 1, 2), ws):
-        np.add.at(m, (r, np.clip(i + k, 0, n - 1)), w)
-    return m
 
 
 def _up2(c, axis, n_fine):
