@@ -236,3 +236,34 @@ def test_pelvis_hip_bone_gets_thin_iliac_plates_without_holes():
     assert 0.7 < meta["volume_ml"] / meta["label_ml"] < 0.95
     pl = ph.info["plates"]["hip_right"]
     assert pl["plate_full_target_abs_err_mm_median_p95"][0] < 0.25
+
+
+# ---------------------------------------------------------------------------- the benchmark part
+
+def test_benchmark_report_shows_results_refusals_and_baselines():
+    import bench_anatomical as B
+
+    d = {"mean": 0.4, "p95": 1.2, "max": 3.5}
+    ok_bone = {"name": "hip_right", "label": 78, "ok": True, "distance": d, "bias_mm": 0.1, "volume_ratio": 0.93,
+               "checks": {"ok": True, "genus": 2, "problems": []}, "truth_genus": 0, "truth_ml": 300.0,
+               "frac_on_neighbour": 0.01, "warnings": ["tunnels"],
+               "baselines": {"threshold_mc": {"ok": True, "distance": d, "bias_mm": 0.0, "volume_ratio": 1.2,
+                                              "checks": {"ok": False, "genus": None}},
+                             "segment": {"ok": False, "error": "empty surface"}}}
+    refused = {"name": "sacrum", "label": 25, "ok": False, "truth_genus": 13, "truth_ml": 200.0,
+               "refusal": "error: part of the bone is missing", "baselines": {}}
+    info = {"pixel": 3.0, "slice_spacing": 3.0, "slice_thickness": 3.0, "psf_sigma": 0.6, "noise": 20,
+            "label_grid": 3.0, "joints": [{"a": "hip_right", "b": "sacrum", "gap_mm": 1.5, "carved": True,
+                                           "min_distance_mm": 1.6}],
+            "plates": {"hip_right": {"whole_bone_area_frac_thinner_than_1mm": 0.01,
+                                     "whole_bone_area_frac_thinner_than_2mm": 0.08}},
+            "ct_figures": {"hip_right": {"plate_0-1mm_mid_HU_p10_p50_p90": [200, 250, 320]}}}
+    res = {"pelvis_3mm": {"seed": 0, "build": {"seconds": 30.0, "peak_rss_mb": 1600}, "info": info,
+                          "cli": {"exit_code": 3, "seconds": 100.0, "error_lines": ["error: sacrum: missing"]},
+                          "bones": [ok_bone, refused], "figures": {}}}
+    text = "\n".join(B.report_lines(res))
+    assert "exit **3**" in text and "error: sacrum: missing" in text
+    assert "| hip_right | 1.0 / 8.0 | 300.0 | product | 0.40 / 1.20 / 3.50 | +0.10 | 0.930 | 2 / 0 | pass" in text
+    assert "**REFUSED**" in text and "part of the bone is missing" in text
+    assert "FAILED: empty surface" in text and "1.5 mm (truths 1.60 mm apart)" in text
+    assert B._error_lines("x\nerror: the CT is too small\nok") == ["error: the CT is too small"]
