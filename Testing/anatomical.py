@@ -1209,6 +1209,15 @@ def _form_ct(model):
             occ = np.clip(0.5 - Fb / hf, 0.0, 1.0)
             if not occ.any():
                 continue
+            # only the box of the bone's nodes in this slab (the fields are functions of
+            # position: the same values, fewer nodes)
+            nzr = [np.flatnonzero(occ.any(axis=ax)) for ax in ((1, 2), (0, 2), (0, 1))]
+            bz, by, bx = ((r[0], r[-1] + 1) for r in nzr)
+            Fb = Fb[bz[0]:bz[1], by[0]:by[1], bx[0]:bx[1]]
+            occ = occ[bz[0]:bz[1], by[0]:by[1], bx[0]:bx[1]]
+            zl, zh = zl + bz[0], zl + bz[1]
+            lo = (lo[0] + bx[0], lo[1] + by[0])
+            hi = (lo[0] + (bx[1] - bx[0]), lo[1] + (by[1] - by[0]))
             xs, ys = fine_axes[0][lo[0]:hi[0]], fine_axes[1][lo[1]:hi[1]]
             zs = fine_axes[2][zl:zh]
             fl = part["fields"]
