@@ -1010,6 +1010,9 @@ def write_report(results, args):
     if real:
         import bench_real
         L += bench_real.report_lines(real)
+    if results.get("anatomical"):
+        import bench_anatomical
+        L += bench_anatomical.report_lines(results["anatomical"])
     sc = results.get("scaling")
     if sc:
         L += _scaling_lines(sc)
@@ -1125,6 +1128,10 @@ def main(argv=None):
     ap.add_argument("--real-runs", default=None, help="comma-separated names of real runs (default all)")
     ap.add_argument("--scaling", action="store_true", help="time and memory vs spacing, pair vs one, vs Slicer")
     ap.add_argument("--profile", action="store_true", help="per-stage times of one femur run")
+    ap.add_argument("--anatomical", action="store_true",
+                    help="the anatomical phantoms (Testing/bench_anatomical.py: real bone shapes, thin plates)")
+    ap.add_argument("--anatomical-cases", default=None,
+                    help="comma-separated anatomical cases (default: all; --quick: the bundled sample)")
     ap.add_argument("--quick", action="store_true",
                     help="small and fast: tiny + one small joint case, 20k samples, few real bones")
     ap.add_argument("--resume", action="store_true", help="keep the cases already in <out>/results.json")
@@ -1170,12 +1177,13 @@ def main(argv=None):
         f"spacing {args.spacing} mm" if args.spacing is not None else "spacing auto") + (
         ", H0/HT auto" if dflt.h0 is None and dflt.ht is None else "")
 
-    results = {"meta": {}, "phantoms": {}, "joint": {}, "real": {}, "scaling": None, "profile": None}
+    results = {"meta": {}, "phantoms": {}, "joint": {}, "real": {}, "scaling": None, "profile": None,
+               "anatomical": {}}
     rpath = os.path.join(args.out_dir, "results.json")
     if args.resume and os.path.exists(rpath):
         with open(rpath) as fh:
             old = json.load(fh)
-        for k in ("phantoms", "joint", "real"):
+        for k in ("phantoms", "joint", "real", "anatomical"):
             results[k] = old.get(k) or {}
         for k in ("scaling", "profile"):
             results[k] = old.get(k)
@@ -1212,6 +1220,13 @@ def main(argv=None):
         results["scaling"] = run_scaling(args)
         parts["scaling"] = time.perf_counter() - t0
         save(results, args)
+    if args.anatomical:
+        import bench_anatomical
+        args.anatomical_cases = (_split(args.anatomical_cases) if args.anatomical_cases is not None else
+                                 (bench_anatomical.QUICK_CASES if args.quick else bench_anatomical.CASES))
+        t0 = time.perf_counter()
+        bench_anatomical.run_anatomical(results, args, save, log)
+        parts["anatomical"] = time.perf_counter() - t0
     if args.profile and not (args.resume and results.get("profile")):
         t0 = time.perf_counter()
         results["profile"] = run_profile(args)
