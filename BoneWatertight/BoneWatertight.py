@@ -220,14 +220,14 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._parameterNode = None
         self._parameterNodeGuiTag = None
         self._applyGuard = ApplyGuard()
-        self._preview = None  # BoneWatertightLib.mrml.ThresholdPreview (its crop cache)
+        self._preview = None  # BoneWatertightLib.app.preview.ThresholdPreview (its crop cache)
         self._previewController = None
         self._previewTimer = None
         self._savedViewState = None
         self._updatingSegmentSelector = False
         self._segmentationShown = None  # the segmentation whose segments the selector last showed
         self._connectingGui = False  # connectGui writes the sliders: no preview for that
-        self._childRun = None  # BoneWatertightLib.mrml.ChildNodesRun of a run in a child process
+        self._childRun = None  # BoneWatertightLib.app.nodes.ChildNodesRun of a run in a child process
         self._childRunDone = None  # (showResult, showFailure) of that run
         self._childRunTimer = None
         self._childRunMessage = ""
@@ -267,7 +267,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._childRunTimer.connect("timeout()", self.onChildRunTimer)
         # ctkSliderWidget tracks by default: valueChanged comes at every drag step (and
         # valueIsChanging never), so the preview follows the mouse; each step only
-        # thresholds the cached crop around the segment (mrml.ThresholdPreview).
+        # thresholds the cached crop around the segment (app.preview.ThresholdPreview).
         for slider in (self.ui.thetaMaxSlider, self.ui.h0Slider, self.ui.htSlider):
             slider.tracking = True
             slider.connect("valueChanged(double)", self.onThresholdChanged)
@@ -329,7 +329,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._onParameterNodeModified)
 
     def onSceneStartClose(self, caller, event) -> None:
-        # A run in progress is cancelled by the logic's own scene guard (mrml.RunGuard: it
+        # A run in progress is cancelled by the logic's own scene guard (app.nodes.RunGuard: it
         # raises CancelledError before anything is written; a child process is stopped at
         # once); stop asking for more work too.
         if self._applyGuard.requestCancel():
@@ -377,7 +377,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         selector did, so Apply is ready for one bone at once)."""
         if self._parameterNode is None or self._updatingSegmentSelector:
             return
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes
 
         p = self._parameterNode
         seg = p.inputSegmentation
@@ -385,7 +385,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         try:
             if self.ui.segmentSelector.currentNode() != seg:
                 self.ui.segmentSelector.setCurrentNode(seg)
-            ids = mrml.segment_selection(seg, list(p.segmentIds), p.segmentId,
+            ids = nodes.segment_selection(seg, list(p.segmentIds), p.segmentId,
                                          pickFirst=seg is not None and seg != self._segmentationShown)
             self._segmentationShown = seg
             if seg is not None and list(self.ui.segmentSelector.selectedSegmentIDs()) != ids:
@@ -450,11 +450,11 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def onAutoThreshold(self) -> None:
         p = self._parameterNode
         with slicer.util.tryWithErrorDisplay(_("Could not propose thresholds."), waitCursor=True):
-            from BoneWatertightLib import mrml
+            from BoneWatertightLib.app import nodes
 
             # several bones: from the union of their segments (the pipeline's auto does the same)
-            proposal = mrml.propose_thresholds(p.inputVolume, p.inputSegmentation, self._chosenSegmentIds(),
-                                               p.theta_max)
+            proposal = nodes.propose_thresholds(p.inputVolume, p.inputSegmentation, self._chosenSegmentIds(),
+                                                p.theta_max)
             # the proposal may leave the fields' declared ranges (theta_max on extended-HU CT
             # with metal): clamp to the schema, keeping HT < H0 < theta_max
             values, notes = clamp_threshold_proposal(proposal)
@@ -482,14 +482,14 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         p = self._parameterNode
         if not p or not p.inputVolume:
             return
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import preview
 
         h0 = self.ui.h0Slider.value
         ht = self.ui.htSlider.value
         tmax = self.ui.thetaMaxSlider.value
         try:
             if self._preview is None or self._preview.scene is not slicer.mrmlScene:
-                self._preview = mrml.ThresholdPreview(slicer.mrmlScene)
+                self._preview = preview.ThresholdPreview(slicer.mrmlScene)
             previewNode = self._preview.update(p.inputVolume, p.inputSegmentation, self._chosenSegmentIds(),
                                                h0, ht, tmax)
         except Exception as exc:  # a preview must never interrupt the user; say why it is missing
@@ -618,14 +618,14 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             return
         self.ui.resultLabel.text = ""
         start = time.time()
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes
         from BoneWatertightLib.errors import CancelledError
 
         ids = self._chosenSegmentIds()
         several = len(ids) > 1
         # one bone: the chosen output model (None: a new one, kept for the next run); several:
         # one model each, replacing those an earlier run made from the same segments
-        outputs = (mrml.previous_output_models(slicer.mrmlScene, p.inputSegmentation, ids) if several
+        outputs = (nodes.previous_output_models(slicer.mrmlScene, p.inputSegmentation, ids) if several
                    else [p.outputModel])
         options = dict(neighbours="auto" if p.neighbours else "none", addAsSegments=p.addAsSegment,
                        showIntermediates=p.showIntermediates, colorByDistance=p.colorByDistance,
@@ -728,7 +728,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
 
 class BoneWatertightLogic(ScriptedLoadableModuleLogic):
-    """Thin Slicer logic: all computation is in BoneWatertightLib (pipeline + the mrml adapter).
+    """Thin Slicer logic: all computation is in BoneWatertightLib (its run service on MRML nodes, app.nodes, over the mrml adapter).
 
     Works without the widget, e.g. from the Python console or a batch script:
     ``BoneWatertightLogic().process(ctNode, segNode, segmentId, h0=300, ht=150)`` for one bone,
@@ -800,17 +800,17 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
                           neighbours: Union[str, Sequence[str]] = "auto", **parameters):
         """As process() for one segment, returning (model node, BoneWatertightLib
         ReconstructionResult with its typed report)."""
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes, summaries
 
         params = self._parameters(preset, parameters)
         startTime = time.time()
         logging.info("BoneWatertight: processing started")
-        model, result = mrml.run_on_nodes(
+        model, result = nodes.run_on_nodes(
             volumeNode, segmentationNode, segmentId, outputModelNode=outputModelNode, params=params,
             progress=progressCallback, addAsSegment=addAsSegment, showIntermediates=showIntermediates,
             colorByDistance=colorByDistance, neighbours=neighbours)
         logging.info(f"BoneWatertight: processing completed in {time.time() - startTime:.2f} s: "
-                     f"{mrml.summarize(result)}")
+                     f"{summaries.summarize(result)}")
         return model, result
 
     def processMany(self, volumeNode: vtkMRMLScalarVolumeNode, segmentationNode: vtkMRMLSegmentationNode,
@@ -844,15 +844,15 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
                               neighbours: Union[str, Sequence[str]] = "auto", addAsSegments: bool = False,
                               showIntermediates: bool = False, colorByDistance: bool = True,
                               preset: Optional[str] = None, **parameters):
-        """As processMany(), returning BoneWatertightLib.mrml.JointNodesResult: ``modelNodes``,
+        """As processMany(), returning BoneWatertightLib.app.nodes.JointNodesResult: ``modelNodes``,
         ``addedSegmentIds``, ``neighbourSegmentIds``, ``warnings``, ``summaryLines()`` and the
         pipeline's JointResult (``result.bones[i].report``, ``result.pairs``)."""
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes
 
         params = self._parameters(preset, parameters)
         startTime = time.time()
         logging.info(f"BoneWatertight: processing {len(segmentIds)} bone(s) started")
-        out = mrml.run_many_on_nodes(
+        out = nodes.run_many_on_nodes(
             volumeNode, segmentationNode, list(segmentIds), outputModelNodes, params,
             progress=progressCallback, neighbours=neighbours, addAsSegments=addAsSegments,
             showIntermediates=showIntermediates, colorByDistance=colorByDistance)
@@ -867,7 +867,7 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
                          preset: Optional[str] = None, pythonExecutable: Optional[str] = None, **parameters):
         """As processManyWithResult(), with the reconstruction in a child process (PythonSlicer
         running the bonewatertight command line): exports the inputs, starts the process and
-        returns at once with a BoneWatertightLib.mrml.ChildNodesRun. Poll it from a timer
+        returns at once with a BoneWatertightLib.app.nodes.ChildNodesRun. Poll it from a timer
         (``fraction, message, finished = run.poll()``, never blocks), stop it with
         ``run.cancel()`` (within a second), then call finishProcessMany(run). Closing the scene
         or removing an input node stops it. progressCallback is called during the export.
@@ -875,12 +875,12 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         :param pythonExecutable: the interpreter (default: PythonSlicer beside the application).
         :raises: as processMany() for bad inputs (the scene is unchanged).
         """
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes
         from BoneWatertightLib.app.child import find_python_slicer
 
         params = self._parameters(preset, parameters)
         logging.info(f"BoneWatertight: processing {len(segmentIds)} bone(s) in a child process")
-        return mrml.start_many_on_nodes(
+        return nodes.start_many_on_nodes(
             volumeNode, segmentationNode, list(segmentIds), outputModelNodes, params,
             progress=progressCallback, neighbours=neighbours, addAsSegments=addAsSegments,
             showIntermediates=showIntermediates, colorByDistance=colorByDistance,
@@ -889,12 +889,12 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
 
     def finishProcessMany(self, run, timeout: Optional[float] = None):
         """Second half of startProcessMany(): store the surfaces as processManyWithResult()
-        does and return its BoneWatertightLib.mrml.JointNodesResult (waits for the process
+        does and return its BoneWatertightLib.app.nodes.JointNodesResult (waits for the process
         when it has not finished; timeout in s). Raises the run's typed error (InputError,
         ReconstructionError, CancelledError, ...); the scene is then unchanged."""
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes
 
-        out = mrml.finish_many_on_nodes(run, timeout)
+        out = nodes.finish_many_on_nodes(run, timeout)
         logging.info("BoneWatertight: processing completed in a child process:\n" + "\n".join(out.summaryLines()))
         return out
 
