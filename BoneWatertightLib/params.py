@@ -25,8 +25,12 @@ from typing import Any, Optional
 
 from .errors import InputError
 
-# Pipeline stages, in order (the CLI groups its options by them).
-STAGES = {
+# The groups of parameters, by the part of the method each configures, in the paper's order
+# (the command line's --help groups its options by them). Not the run's progress table,
+# pipeline.STAGES, whose spans follow a several-bone run (the shared steps apart, the per-bone
+# threshold, visible points and Poisson as one span); it cannot be derived from that one, as
+# this module must stay importable without the pipeline (the Slicer panel and --help read it).
+PARAMETER_GROUPS = {
     "prepare": "crop + resample (paper 2.1, 3.1)",
     "filter": "hybrid filter (paper 2.1)",
     "threshold": "two-step threshold (paper 2.1)",
@@ -184,7 +188,7 @@ def _np_bool():
 
 def param(default, stage: str, panel: Optional[str], *, label: str, help: str, **spec):
     """Declare one parameter: a dataclass field whose metadata is its spec (see ParamSpec)."""
-    if stage not in STAGES:
+    if stage not in PARAMETER_GROUPS:
         raise ValueError(f"unknown stage {stage!r}")
     if panel is not None and panel not in PANEL_SECTIONS:
         raise ValueError(f"unknown panel section {panel!r}")

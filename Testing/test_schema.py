@@ -73,7 +73,7 @@ def test_stage_defaults_agree_with_the_schema():
     from BoneWatertightLib.stages import deform, filtering, prepare, refine, threshold, visible
 
     checked = 0
-    for func in (prepare.prepare, prepare.prepare_labels, filtering.hybrid_filter,
+    for func in (prepare.prepare_labels, filtering.hybrid_filter,
                  threshold.bone_masks, threshold.erosions_to_separate,
                  visible.visible_points, deform.Deformer.__init__, refine.refine_to_edges,
                  refine.refine_pass):

@@ -221,17 +221,15 @@ def joint_report_from_dict(data: dict):
 
 
 def _joint_report_of_one(case: dict, pipeline):
-    """The JointReport of a one-bone run, whose JSON report is the bone's CaseReport: the
-    shared parts of its pipeline report (grid, thresholds, the shared stage times)."""
-    from ..report import JointReport, StageTimes
+    """The JointReport of a one-bone run, whose JSON report is the bone's CaseReport: grid,
+    thresholds and ownership from the bone's pipeline report, and its times (all of a
+    one-bone run's time is its bone's)."""
+    from ..report import JointReport
 
-    shared = StageTimes()
-    for name in ("import_open3d", "prepare", "filter", "ownership", "territories", "contacts",
-                 "total"):
-        setattr(shared, name, getattr(pipeline.timings, name, 0.0))
     return JointReport(version=pipeline.version, parameters=dict(pipeline.parameters),
                        input=dict(pipeline.input), thresholds=dict(pipeline.thresholds),
-                       ownership=dict(pipeline.ownership), pairs=[], timings=shared,
+                       ownership=dict(pipeline.ownership), pairs=[],
+                       timings=dataclasses.replace(pipeline.timings),
                        neighbours=list(case.get("inputs", {}).get("neighbours") or []),
                        coordinate_system=pipeline.coordinate_system, units=pipeline.units)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 
 from ..errors import InputError
-from ..params import PRESETS, SCHEMA, STAGES, ParamSpec, Parameters, apply_preset
+from ..params import PARAMETER_GROUPS, PRESETS, SCHEMA, ParamSpec, Parameters, apply_preset
 
 PARAM_DEST_PREFIX = "param_"
 
@@ -47,7 +47,7 @@ def add_parameter_options(parser: argparse.ArgumentParser) -> None:
     for spec in SCHEMA.values():
         if spec.stage not in groups:
             groups[spec.stage] = parser.add_argument_group(
-                f"parameters: {STAGES[spec.stage]}")
+                f"parameters: {PARAMETER_GROUPS[spec.stage]}")
         group = groups[spec.stage]
         dest = PARAM_DEST_PREFIX + spec.name
         if spec.kind is bool:
