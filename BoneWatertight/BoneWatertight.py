@@ -38,7 +38,7 @@ _ensureLibraryOnPath()
 
 # The library's parameter schema (stdlib-only import): ranges, defaults, labels and help of every
 # algorithm parameter are declared there once and applied here to the parameter node and widgets.
-from BoneWatertightLib.params import PRESETS, SCHEMA  # noqa: E402
+from BoneWatertightLib.params import SCHEMA  # noqa: E402
 
 # The panel's decisions (Apply/Cancel/install states, when the preview shows and hides, Auto's
 # clamping to the schema, the self-test's install-or-skip): plain Python, tested in CI.
@@ -50,7 +50,6 @@ from BoneWatertightLib.app.slicer_support import (  # noqa: E402
     dependency_test_plan,
 )
 
-PRESET_NAMES = ["custom", *PRESETS]
 SAMPLE_FOLDER = os.path.join("SampleData", "lumbar_spine_3mm")
 
 #
@@ -163,7 +162,7 @@ class BoneWatertightParameterNode:
     has no connector for it); segmentId - the first of them (what a parameter node of an older
     version holds: it is adopted when segmentIds is empty). neighbours - the other segments
     compete as neighbours. outputModel - result model of a one-bone run (several bones: one
-    model each, found again by their source segment). preset - the last preset chosen.
+    model each, found again by their source segment).
     addAsSegment, showIntermediates, colorByDistance - outputs. The algorithm parameters
     (spacing, h0, ht, ...) are added by withLibraryParameters from the library's schema; for
     those whose schema allows "auto" the slider's sentinel (0) means auto.
@@ -175,7 +174,6 @@ class BoneWatertightParameterNode:
     segmentId: str = ""
     neighbours: bool = True
     outputModel: vtkMRMLModelNode
-    preset: Annotated[str, Choice(PRESET_NAMES)] = "custom"
     addAsSegment: bool = False
     showIntermediates: bool = False
     colorByDistance: bool = True
@@ -249,9 +247,6 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         # has no parameter-node connector: sync it by hand.
         self.ui.segmentSelector.connect("currentNodeChanged(vtkMRMLNode*)", self.onSegmentSelectorChanged)
         self.ui.segmentSelector.connect("segmentSelectionChanged(QStringList)", self.onSegmentSelectorChanged)
-        # activated(): user choices only. The parameter-node connector rewrites this combo on every
-        # connectGui/scene load, and re-applying a stored preset then would undo the user's edits.
-        self.ui.presetComboBox.connect("activated(int)", self.onPresetChanged)
         self.ui.autoThresholdButton.connect("clicked(bool)", self.onAutoThreshold)
         self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
 
@@ -435,17 +430,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.outputModelSelector.enabled = not several
         self.ui.outputNoteLabel.visible = several
 
-    # --- presets and thresholds
-
-    def onPresetChanged(self, index) -> None:
-        name = self.ui.presetComboBox.currentText
-        if not self._parameterNode or name not in PRESETS:
-            return
-        # A preset sets only its own fields (thresholds, morphology); the user's spacing,
-        # iterations, edge level ... stay as they are.
-        with slicer.util.NodeModify(self._parameterNode):
-            for key, value in PRESETS[name].items():
-                setattr(self._parameterNode, key, SCHEMA[key].to_panel(value))
+    # --- thresholds
 
     def onAutoThreshold(self) -> None:
         p = self._parameterNode
@@ -743,19 +728,18 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         return BoneWatertightParameterNode(super().getParameterNode())
 
     @staticmethod
-    def _parameters(preset: Optional[str], parameters: dict):
-        from BoneWatertightLib.params import Parameters, apply_preset
+    def _parameters(parameters: dict):
+        from BoneWatertightLib.errors import InputError
+        from BoneWatertightLib.params import PRESETS_REMOVED, Parameters
 
-        params = Parameters()
-        if preset and preset != "custom":
-            params = apply_preset(params, preset)
-        return params.replace(**parameters)
+        if "preset" in parameters:  # an argument of older versions
+            raise InputError(PRESETS_REMOVED)
+        return Parameters().replace(**parameters)
 
     def process(self, volumeNode: vtkMRMLScalarVolumeNode, segmentationNode: vtkMRMLSegmentationNode,
                 segmentId: Union[str, Sequence[str]], outputModelNode=None, progressCallback=None,
                 addAsSegment: bool = False, showIntermediates: bool = False, colorByDistance: bool = True,
-                preset: Optional[str] = None, neighbours: Union[str, Sequence[str]] = "auto",
-                **parameters):
+                neighbours: Union[str, Sequence[str]] = "auto", **parameters):
         """Reconstruct the watertight bone surface into a model node.
 
         :param volumeNode: CT volume (vtkMRMLScalarVolumeNode, HU).
@@ -768,7 +752,6 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         :param addAsSegment: also add the surface to the segmentation as a new segment.
         :param showIntermediates: add the intermediate point sets and M0 as model nodes.
         :param colorByDistance: colour the model by the per-vertex distance to the constraints.
-        :param preset: "femur", "hip" or "vertebra": sets its own fields; explicit parameters override it.
         :param neighbours: "auto" (default): every other segment of the segmentation is a
             neighbour that competes for the joint (the surface never enters it); "none": the
             segment alone; or a list of segment IDs.
@@ -786,23 +769,23 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         if not isinstance(segmentId, str) and segmentId is not None:
             return self.processMany(volumeNode, segmentationNode, list(segmentId), outputModelNode,
                                     progressCallback, neighbours, addAsSegment, showIntermediates,
-                                    colorByDistance, preset, **parameters)
+                                    colorByDistance, **parameters)
         model, _result = self.processWithResult(
             volumeNode, segmentationNode, segmentId, outputModelNode, progressCallback, addAsSegment,
-            showIntermediates, colorByDistance, preset, neighbours=neighbours, **parameters)
+            showIntermediates, colorByDistance, neighbours=neighbours, **parameters)
         return model
 
     def processWithResult(self, volumeNode: vtkMRMLScalarVolumeNode,
                           segmentationNode: vtkMRMLSegmentationNode, segmentId: str,
                           outputModelNode: Optional[vtkMRMLModelNode] = None, progressCallback=None,
                           addAsSegment: bool = False, showIntermediates: bool = False,
-                          colorByDistance: bool = True, preset: Optional[str] = None,
-                          neighbours: Union[str, Sequence[str]] = "auto", **parameters):
+                          colorByDistance: bool = True, neighbours: Union[str, Sequence[str]] = "auto",
+                          **parameters):
         """As process() for one segment, returning (model node, BoneWatertightLib
         ReconstructionResult with its typed report)."""
         from BoneWatertightLib.app import nodes, summaries
 
-        params = self._parameters(preset, parameters)
+        params = self._parameters(parameters)
         startTime = time.time()
         logging.info("BoneWatertight: processing started")
         model, result = nodes.run_on_nodes(
@@ -817,7 +800,7 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
                     segmentIds: Sequence[str], outputModelNodes=None, progressCallback=None,
                     neighbours: Union[str, Sequence[str]] = "auto", addAsSegments: bool = False,
                     showIntermediates: bool = False, colorByDistance: bool = True,
-                    preset: Optional[str] = None, **parameters) -> list:
+                    **parameters) -> list:
         """Reconstruct several bones of one segmentation together: one model node per bone.
 
         The bones compete for their joints (and, by default, with every other segment of the
@@ -830,26 +813,26 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         :param neighbours: "auto" (default, every other segment), "none" or a list of segment IDs.
         :param addAsSegments: also write the surfaces into the segmentation as new segments
             "<segment> watertight" that share one label map layer (no voxel in two of them).
-        :param progressCallback, showIntermediates, colorByDistance, preset, parameters: as process().
+        :param progressCallback, showIntermediates, colorByDistance, parameters: as process().
         :return: list of model nodes, one per segment ID.
         :raises: as process(); a failure of any bone leaves the scene unchanged.
         """
         return self.processManyWithResult(volumeNode, segmentationNode, segmentIds, outputModelNodes,
                                           progressCallback, neighbours, addAsSegments, showIntermediates,
-                                          colorByDistance, preset, **parameters).modelNodes
+                                          colorByDistance, **parameters).modelNodes
 
     def processManyWithResult(self, volumeNode: vtkMRMLScalarVolumeNode,
                               segmentationNode: vtkMRMLSegmentationNode, segmentIds: Sequence[str],
                               outputModelNodes=None, progressCallback=None,
                               neighbours: Union[str, Sequence[str]] = "auto", addAsSegments: bool = False,
                               showIntermediates: bool = False, colorByDistance: bool = True,
-                              preset: Optional[str] = None, **parameters):
+                              **parameters):
         """As processMany(), returning BoneWatertightLib.app.nodes.JointNodesResult: ``modelNodes``,
         ``addedSegmentIds``, ``neighbourSegmentIds``, ``warnings``, ``summaryLines()`` and the
         pipeline's JointResult (``result.bones[i].report``, ``result.pairs``)."""
         from BoneWatertightLib.app import nodes
 
-        params = self._parameters(preset, parameters)
+        params = self._parameters(parameters)
         startTime = time.time()
         logging.info(f"BoneWatertight: processing {len(segmentIds)} bone(s) started")
         out = nodes.run_many_on_nodes(
@@ -864,7 +847,7 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
                          segmentIds: Sequence[str], outputModelNodes=None, progressCallback=None,
                          neighbours: Union[str, Sequence[str]] = "auto", addAsSegments: bool = False,
                          showIntermediates: bool = False, colorByDistance: bool = True,
-                         preset: Optional[str] = None, pythonExecutable: Optional[str] = None, **parameters):
+                         pythonExecutable: Optional[str] = None, **parameters):
         """As processManyWithResult(), with the reconstruction in a child process (PythonSlicer
         running the bonewatertight command line): exports the inputs, starts the process and
         returns at once with a BoneWatertightLib.app.nodes.ChildNodesRun. Poll it from a timer
@@ -878,7 +861,7 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         from BoneWatertightLib.app import nodes
         from BoneWatertightLib.app.child import find_python_slicer
 
-        params = self._parameters(preset, parameters)
+        params = self._parameters(parameters)
         logging.info(f"BoneWatertight: processing {len(segmentIds)} bone(s) in a child process")
         return nodes.start_many_on_nodes(
             volumeNode, segmentationNode, list(segmentIds), outputModelNodes, params,

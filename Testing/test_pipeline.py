@@ -8,7 +8,7 @@ from BoneWatertightLib import errors
 from BoneWatertightLib.mesh.checks import check_surface
 from BoneWatertightLib.stages.deform import Deformer
 from BoneWatertightLib.mesh import Surface, enclosed_volume, mean_edge_length
-from BoneWatertightLib.params import Parameters, preset
+from BoneWatertightLib.params import Parameters
 from BoneWatertightLib.pipeline import reconstruct
 from BoneWatertightLib.stages.poisson import contour, poisson_surface, remesh
 from BoneWatertightLib.stages.threshold import boundary_voxels, voxel_points
@@ -306,10 +306,8 @@ def test_error_segment_touching_border_and_memory_limit():
         reconstruct(ct, mask, Parameters(spacing=0.05, max_memory_gb=0.5))
 
 
-def test_error_unknown_preset_and_parameter():
-    with pytest.raises(errors.InputError):
-        preset("skull")
-    with pytest.raises(errors.InputError):
+def test_error_unknown_parameter():
+    with pytest.raises(errors.InputError, match="Unknown parameter"):
         Parameters().replace(not_a_parameter=1)
 
 

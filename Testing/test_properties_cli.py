@@ -97,8 +97,6 @@ def cli_cases(draw):
         extra.append("--ras")
     if draw(st.booleans()):
         extra.append("--neighbours=" + draw(st.sampled_from(["auto", "none"] + pool)))
-    if draw(st.sampled_from([False] * 3 + [True])):
-        extra.append("--preset=" + draw(st.sampled_from(["femur", "hip", "vertebra"])))
     return dict(scene=scene, labels=labels, params=fast + params, bad=bad, extra=extra,
                 ct_format=draw(st.sampled_from(CT_FORMATS)),
                 seg_format=draw(st.sampled_from(SEG_FORMATS)),
