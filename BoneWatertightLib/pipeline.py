@@ -19,6 +19,7 @@ the image boundary -> checks (SPEC §4) -> plausibility against the segment -> p
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
@@ -39,11 +40,13 @@ from .mesh.operators import sample_field
 from .mesh.surface import Surface, enclosed_volume, mean_edge_length, surface_area
 from .params import Parameters
 from .progress import Progress, ProgressCallback
-from .report import (Counts, DistanceSummary, JointReport, PairReport, PipelineReport,
-                     Refinement, StageTimes, constants_of)
+from .report import (Counts, DistanceSummary, FallbackLog, JointReport, PairReport,
+                     PipelineReport, Refinement, StageTimes, constants_of)
 from .stages import autothreshold as _auto, contacts as _contacts, deform as _deform
+from .stages import evidence as _evidence
 from .stages import filtering as _filtering, ownership as _ownership, plausibility as _plaus
-from .stages import poisson as _poisson, prepare as _prepare, refine as _refine
+from .stages import plates as _plates, poisson as _poisson, prepare as _prepare
+from .stages import refine as _refine
 from .stages import threshold as _threshold, visible as _visible
 from .stages.autothreshold import auto_thresholds
 from .stages.deform import Deformer
@@ -52,7 +55,7 @@ from .stages.ownership import compute_ownership
 from .stages.poisson import import_open3d, initial_surface, mask_normals
 from .stages.prepare import prepare_labels
 from .stages.refine import refine_to_edges
-from .stages.threshold import (bone_masks, boundary_voxels, crossing_points,
+from .stages.threshold import (BoneMasks, bone_masks, boundary_voxels, crossing_points,
                                erosions_to_separate, voxel_points)
 from .stages.visible import visible_points
 
@@ -175,6 +178,128 @@ def _select_neighbours(labels: np.ndarray, values: list, targets: list, neighbou
     return lut[labels], [values[i - 1] for i in keep if i not in targets]
 
 
+@contextlib.contextmanager
+def timed(times: StageTimes, stage: str):
+    """Add the seconds the block takes to ``times.<stage>`` (the one stage clock)."""
+    t0 = time.perf_counter()
+    try:
+        yield
+    finally:
+        setattr(times, stage, getattr(times, stage) + time.perf_counter() - t0)
+
+
+@dataclass
+class BoneWork:
+    """One bone between the stages of :func:`reconstruct_many`.
+
+    Points and vertices are (n, 3) x-y-z grid millimetres of the working grid; ``faces``
+    (m, 3) vertex indices of M0 (every later stage moves vertices only).
+    """
+
+    k: int                                   # label index on the working grid
+    name: str
+    times: StageTimes = field(default_factory=StageTimes)
+    masks: Optional[BoneMasks] = None        # the threshold windows, on the bone's box
+    separation: Optional[int] = None         # erosions that separate it (None: never)
+    n_candidates: int = 0                    # W_H0 boundary points seen by eq. (1)
+    visible: Optional[np.ndarray] = None     # the thinned visible points: Poisson's input
+    visible_all: Optional[np.ndarray] = None # every visible point: S(P_H0) of B*
+    b_ht: Optional[np.ndarray] = None        # HT crossings beyond W_H0: P_HT - P_H0 of B*
+    vis_info: dict = field(default_factory=dict)
+    m0: Optional[Surface] = None
+    raw_vertices: int = 0                    # Poisson's own vertex count
+    # (z, y, x) float32 distance (mm) to other bones' owned voxels, on the masks' box
+    others_distance: Optional[np.ndarray] = None
+    constraints: Optional[np.ndarray] = None # B* on this bone's side of every joint
+    deformed: Optional[np.ndarray] = None    # vertices after eq. (15)
+    vertices: Optional[np.ndarray] = None    # current vertices
+    history: list = field(default_factory=list)
+    refinement: Refinement = field(default_factory=Refinement)
+    contacts: dict = field(default_factory=dict)
+    fallbacks: FallbackLog = field(default_factory=FallbackLog)  # what fell back, and where
+    plates: Optional[_plates.Plates] = None  # thin plates the thresholds miss (grid mm)
+    fusion: Optional[_poisson.Fusion] = None  # what M0 joined to the Poisson surface
+
+    @property
+    def faces(self) -> np.ndarray:
+        return self.m0.faces
+
+
+@dataclass
+class Workspace:
+    """What the bones of one working grid share: the prepared grid, the label index map
+    with the targets and the chosen neighbours, the filtered CT, the thresholds, the
+    ownership, the fixed masks of the bones not reconstructed and the territories. Arrays
+    are (z, y, x) on the working grid."""
+
+    prep: object                             # stages.prepare.PreparedLabels
+    labels: np.ndarray
+    neighbour_values: list
+    names: dict
+    band: float                              # how far a bone may reach beyond its label (mm)
+    ct_f: Optional[np.ndarray] = None
+    h0: float = 0.0
+    ht: float = 0.0
+    thresholds: dict = field(default_factory=dict)
+    own: object = None                       # stages.ownership.Ownership
+    fixed: dict = field(default_factory=dict)
+    territories: dict = field(default_factory=dict)
+    ct_smooth: Optional[np.ndarray] = None
+
+    @property
+    def d(self) -> float:
+        return self.prep.grid.spacing
+
+    @property
+    def targets(self) -> list:
+        return self.prep.targets
+
+    def name_of(self, k: int) -> str:
+        v = self.prep.values[k - 1]
+        return str(self.names.get(v, v))
+
+    def value_of(self, k: int) -> int:
+        return int(self.prep.values[k - 1])
+
+
+@dataclass
+class _Run:
+    """One call of :func:`reconstruct_many`: parameters, progress, the shared stage times and
+    fallbacks, and the bones that failed ({label index: error})."""
+
+    params: Parameters
+    progress: Progress
+    keep_going: bool
+    times: StageTimes = field(default_factory=StageTimes)
+    fallbacks: FallbackLog = field(default_factory=FallbackLog)
+    failed: dict = field(default_factory=dict)
+
+    def stage(self, name: str) -> Progress:
+        return _stage(self.progress, name)
+
+    def fail(self, k: int, exc: BaseException) -> None:
+        """Record bone k's failure (keep_going), else raise it."""
+        if (not self.keep_going or not isinstance(exc, BoneWatertightError)
+                or isinstance(exc, CancelledError)):
+            raise exc
+        self.failed[k] = exc
+
+    def each(self, keys: list, progress: Progress, work, slots: Optional[int] = None) -> dict:
+        """{k: work(k, part)} for each key of ``keys`` that has not failed; ``part`` is k's
+        share of ``progress`` (1 / ``slots`` of it); a failure is recorded by :meth:`fail`."""
+        out = {}
+        slots = slots or len(keys)
+        for i, k in enumerate(keys):
+            if k in self.failed:
+                continue
+            part = progress.stage(i / slots, (i + 1) / slots)
+            try:
+                out[k] = work(k, part)
+            except Exception as exc:  # noqa: BLE001 - fail() re-raises unless keep_going
+                self.fail(k, exc)
+        return out
+
+
 def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
                      params: Optional[Parameters] = None,
                      progress: Optional[ProgressCallback] = None, *, neighbours="auto",
@@ -210,50 +335,84 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     ------
     InputError, ReconstructionError, SurfaceCheckError, PlausibilityError, CancelledError
     """
-    params = (params or Parameters()).validate()
-    names = dict(names or {})
-    prog = Progress(progress)
-    shared = StageTimes()
     t_all = time.perf_counter()
+    run = _Run((params or Parameters()).validate(), Progress(progress), keep_going)
+    run.stage("open3d")
+    with timed(run.times, "import_open3d"):
+        import_open3d()  # first: a missing dependency fails before minutes of work
+    ws = prepare_stage(run, ct, labels, targets, neighbours, dict(names or {}))
+    filter_stage(run, ws)
+    threshold_stage(run, ws)
+    ownership_stage(run, ws)
+    bones = run.each(ws.targets, run.stage("surfaces"),
+                     lambda k, part: initial_surface_stage(run, ws, k, part))
+    territory_stage(run, ws, bones)
+    deform_stage(run, ws, bones)
+    contact_stage(run, ws, bones)
+    sub = run.stage("checks")
+    done = run.each(ws.targets, sub, lambda k, part: finish_bone(run, ws, bones[k], part),
+                    slots=len(ws.targets) + 1)
+    results = [done[k] if k in done else _failed_result(ws, k, run.failed[k])
+               for k in ws.targets]
+    pairs = pair_stage(ws, results)
+    run.times.total = time.perf_counter() - t_all
+    for r in results:
+        if r.ok:
+            _shared_times(r.report.timings, run.times)
+    report = JointReport(
+        version=__version__, parameters=run.params.to_dict(), input=ws.prep.info,
+        thresholds=ws.thresholds, ownership=_ownership_info(ws), pairs=pairs,
+        timings=run.times, neighbours=[str(ws.names.get(v, v)) for v in ws.neighbour_values],
+        fallbacks=list(run.fallbacks))
+    run.progress(1.0, "done")
+    return JointResult(bones=results, pairs=pairs, report=report)
 
-    # open3d first: a missing dependency fails before minutes of work.
-    sub = _stage(prog, "open3d")
-    t0 = time.perf_counter()
-    import_open3d()
-    shared.import_open3d = time.perf_counter() - t0
 
-    sub = _stage(prog, "prepare")
-    t0 = time.perf_counter()
-    band_guess = max(params.segment_dilation, 3.0)
-    prep = prepare_labels(ct, labels, targets, spacing=params.spacing, margin=params.margin,
-                          band_mm=band_guess, max_memory_gb=params.max_memory_gb,
-                          at_border=params.at_border, progress=sub)
-    grid, d = prep.grid, prep.grid.spacing
-    size_errors = size_problems(prep, params, names)
-    if size_errors and not keep_going:
-        raise next(iter(size_errors.values()))
-    lab, neighbour_values = _select_neighbours(prep.labels, prep.values, prep.targets, neighbours)
-    n = len(prep.values)
-    c = prep.coarseness
-    band = max(params.segment_dilation, BAND_COARSENESS * c)
-    shared.prepare = time.perf_counter() - t0
+# ----------------------------------------------------------------------------------------
+# the stages of reconstruct_many, in order
 
-    def name_of(k):
-        v = prep.values[k - 1]
-        return str(names.get(v, v))
+def prepare_stage(run: _Run, ct, labels, targets, neighbours, names: dict) -> Workspace:
+    """Validate, crop and resample (stages.prepare), check the sizes, choose the neighbours."""
+    params = run.params
+    sub = run.stage("prepare")
+    with timed(run.times, "prepare"):
+        band_guess = max(params.segment_dilation, 3.0)
+        prep = prepare_labels(ct, labels, targets, spacing=params.spacing, margin=params.margin,
+                              band_mm=band_guess, max_memory_gb=params.max_memory_gb,
+                              at_border=params.at_border, progress=sub)
+        size_errors = size_problems(prep, params, names)
+        if size_errors and not run.keep_going:
+            raise next(iter(size_errors.values()))
+        lab, neighbour_values = _select_neighbours(prep.labels, prep.values, prep.targets,
+                                                   neighbours)
+        band = max(params.segment_dilation, BAND_COARSENESS * prep.coarseness)
+    run.failed.update(size_errors)
+    return Workspace(prep=prep, labels=lab, neighbour_values=neighbour_values, names=names,
+                     band=band)
 
-    sub = _stage(prog, "filter")
-    t0 = time.perf_counter()
-    near = ndimage.binary_dilation(np.isin(lab, prep.targets),
-                                   iterations=max(1, int(round(FILTER_REGION_MM / d))))
-    ct_f = hybrid_filter(prep.ct, d, sigma=params.sigma, rho=params.rho, region=near)
-    del near
-    shared.filter = time.perf_counter() - t0
 
-    sub = _stage(prog, "thresholds")
+def filter_stage(run: _Run, ws: Workspace) -> None:
+    """The hybrid filter (paper §2.1), its percentile taken near the targets."""
+    params = run.params
+    run.stage("filter")
+    with timed(run.times, "filter"):
+        d = ws.d
+        near = ndimage.binary_dilation(np.isin(ws.labels, ws.targets),
+                                       iterations=max(1, int(round(FILTER_REGION_MM / d))))
+        ws.ct_f = hybrid_filter(ws.prep.ct, d, sigma=params.sigma, rho=params.rho, region=near)
+
+
+def threshold_stage(run: _Run, ws: Workspace) -> None:
+    """H0 and HT (given, or estimated from the CT on its own grid), the tissue levels, and a
+    failure for each target with no voxel in [HT, theta_max]."""
+    params = run.params
+    run.stage("thresholds")
+    prep = ws.prep
     nct, nlab, nsp = prep.native
-    estimate = auto_thresholds(nct, nlab, [prep.values[t - 1] for t in prep.targets], nsp, c,
-                               params.theta_max) if (params.h0 is None or params.ht is None) else None
+    values = [prep.values[t - 1] for t in prep.targets]
+    c = prep.coarseness
+    estimate = auto_thresholds(nct, nlab, values, nsp, c, params.theta_max, run.fallbacks) \
+        if (params.h0 is None or params.ht is None) else None
     h0 = params.h0 if params.h0 is not None else estimate["h0"]
     ht = params.ht if params.ht is not None else estimate["ht"]
     if estimate is not None:
@@ -264,135 +423,530 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     if estimate is not None:
         soft, cortex = estimate["soft_tissue"], estimate["cortex"]
     else:
-        soft, cortex = _auto.tissue_levels(nct, np.isin(nlab, [prep.values[t - 1] for t in prep.targets]),
-                                           nlab > 0, nsp, c)
-    thresholds = {"h0": float(h0), "ht": float(ht), "theta_max": float(params.theta_max),
-                  "h0_auto": params.h0 is None, "ht_auto": params.ht is None,
-                  "soft_tissue_hu": float(soft), "cortex_hu": float(cortex)}
-    failed = dict(size_errors)
-
-    def fail(k, exc):
-        if not keep_going or not isinstance(exc, BoneWatertightError) or isinstance(exc, CancelledError):
-            raise exc
-        failed[k] = exc
-
+        soft, cortex = _auto.tissue_levels(nct, np.isin(nlab, values), nlab > 0, nsp, c,
+                                           run.fallbacks)
+    ws.h0, ws.ht = h0, ht
+    ws.thresholds = {"h0": float(h0), "ht": float(ht), "theta_max": float(params.theta_max),
+                     "h0_auto": params.h0 is None, "ht_auto": params.ht is None,
+                     "soft_tissue_hu": float(soft), "cortex_hu": float(cortex)}
     for t in prep.targets:
-        seg = lab == t
-        window = (ct_f[seg] >= ht) & (ct_f[seg] <= params.theta_max)
+        seg = ws.labels == t
+        window = (ws.ct_f[seg] >= ht) & (ws.ct_f[seg] <= params.theta_max)
         if not window.any():
-            fail(t, _threshold_error(name_of(t), ht, params.theta_max, ct_f[seg]))
+            run.fail(t, _threshold_error(ws.name_of(t), ht, params.theta_max, ws.ct_f[seg]))
 
-    sub = _stage(prog, "ownership")
-    t0 = time.perf_counter()
-    own = compute_ownership(ct_f, lab, n, d, h0=h0, ht=ht, theta_max=params.theta_max,
-                            soft=soft, contrast=max(cortex - soft, 1.0), coarseness=c,
-                            band_mm=band, progress=sub)
-    shared.ownership = time.perf_counter() - t0
 
-    # --- per bone: windows, visible points, M0
-    sub = _stage(prog, "surfaces")
-    bones = {}
-    step_voxels = max(1, int(round(min(prep.ct_spacing) / d)))
-    for i, k in enumerate(prep.targets):
-        if k in failed:
-            continue
-        part = sub.stage(i / len(prep.targets), (i + 1) / len(prep.targets))
-        try:
-            bones[k] = _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, part,
-                                     name_of(k), step_voxels)
-        except Exception as exc:  # noqa: BLE001 - fail() re-raises unless keep_going
-            fail(k, exc)
+def ownership_stage(run: _Run, ws: Workspace) -> None:
+    """Which voxels belong to which bone (stages.ownership)."""
+    params = run.params
+    sub = run.stage("ownership")
+    with timed(run.times, "ownership"):
+        th = ws.thresholds
+        ws.own = compute_ownership(
+            ws.ct_f, ws.labels, len(ws.prep.values), ws.d, h0=ws.h0, ht=ws.ht,
+            theta_max=params.theta_max, soft=th["soft_tissue_hu"],
+            contrast=max(th["cortex_hu"] - th["soft_tissue_hu"], 1.0),
+            coarseness=ws.prep.coarseness, band_mm=ws.band, progress=sub)
 
-    # --- territories: the midway surfaces between bones (from the M0s)
-    sub = _stage(prog, "territories")
-    t0 = time.perf_counter()
-    fixed = _fixed_masks(own, lab, prep.targets, n)
-    terr = {}
-    if len(bones) > 1 or fixed:
-        terr = _contacts.territories({k: (b["m0"].vertices, b["m0"].faces) for k, b in bones.items()},
-                                     fixed, lab.shape, d)
-    shared.territories = time.perf_counter() - t0
 
-    # --- per bone: deformation and edge refinement (never toward another bone's side)
-    sub = _stage(prog, "deform")
-    ct_smooth = None
+def initial_surface_stage(run: _Run, ws: Workspace, k: int, progress: Progress) -> BoneWork:
+    """Bone k's threshold windows (§2.1), visible points (eq. 1) and M0 (§2.3)."""
+    bone = BoneWork(k=k, name=ws.name_of(k))
+    threshold_windows(run, ws, bone)
+    progress(0.2, f"{bone.name}: visible points")
+    with timed(bone.times, "visible"):
+        local = visible_points_of(run, ws, bone, progress.stage(0.2, 0.5))
+    progress(0.5, f"{bone.name}: Poisson surface M0")
+    with timed(bone.times, "poisson"):
+        poisson_m0(run, ws, bone, local)
+    progress(1.0, f"{bone.name}: M0 done")
+    bone.others_distance = _others_distance(ws, bone)
+    return bone
+
+
+def threshold_windows(run: _Run, ws: Workspace, bone: BoneWork) -> None:
+    """W_H0 and W_HT of the bone's owned voxels, and the paper's separation test."""
+    params, own, d = run.params, ws.own, ws.d
+    with timed(bone.times, "threshold"):
+        bone.masks = bone_masks(ws.ct_f, own.owner, own.cores, ws.labels, bone.k, d, h0=ws.h0,
+                                theta_max=params.theta_max, coarseness=ws.prep.coarseness,
+                                opening=params.opening, closing=params.closing,
+                                unsupported=own.unsupported, fallbacks=bone.fallbacks)
+        step_voxels = max(1, int(round(min(ws.prep.ct_spacing) / d)))
+        bone.separation = erosions_to_separate(ws.ct_f, own.owner, bone.k, d, h0=ws.h0,
+                                               theta_max=params.theta_max,
+                                               step_voxels=step_voxels,
+                                               max_erosions=params.max_erosions)
+        thin_plates(run, ws, bone)
+
+
+def thin_plates(run: _Run, ws: Workspace, bone: BoneWork) -> None:
+    """Plates thinner than the CT resolves (stages.plates) join the bone as slabs of the
+    model's thickness: in the visible-point candidates and the deformation's inside test
+    (here), in M0 (fused by poisson_m0) and as the edge refinement's targets."""
+    masks, d, own, k = bone.masks, ws.d, ws.own, bone.k
+    soft, cortex = ws.thresholds["soft_tissue_hu"], ws.thresholds["cortex_hu"]
+    sl, reg = own.regions[k]
+    region = np.zeros(ws.labels.shape, bool)
+    region[sl] = reg
+    box = masks.box
+    # Inside or right along the segment (within half its coarseness), not another bone's.
+    along = ndimage.binary_dilation(
+        ws.labels[box] == k, structure=_threshold.SIX,
+        iterations=max(1, int(round(0.5 * ws.prep.coarseness / d))))
+    region = region[box] & along & ((own.owner[box] == 0) | (own.owner[box] == k))
+    t_min = _plate_min_thickness(run.params, d)
+    resolved = ndimage.binary_erosion(masks.occupancy, structure=_threshold.SIX,
+                                      iterations=max(1, int(round(0.5 * t_min / d))))
+    # A ridge as high as the label level always counts; fainter ones where the noise allows.
+    bone.plates = _plates.find_plates(
+        ws.prep.ct[box], region, masks.w_ht, resolved, d, native_spacing=ws.prep.ct_spacing,
+        soft=soft, cortex=cortex,
+        max_contrast=_ownership.LABEL_LEVEL_FRACTION * (ws.ht - soft), min_thickness=t_min,
+        origin=masks.origin)
+    if bone.plates.n:
+        slab = bone.plates.mask(masks.w_ht.shape, masks.origin)
+        masks.w_ht |= slab
+        masks.far |= slab & ~masks.w_h0
+        masks.solid_h0 |= slab
+        masks.occupancy |= slab
+        masks.info["voxels_plate"] = int(slab.sum())
+
+
+def _plate_min_thickness(params: Parameters, d: float) -> float:
+    """t_min (mm): the thinnest slab the working grid and M0's remeshing grid resolve."""
+    edge = params.edge_length if params.edge_length is not None else d
+    return _plates.PLATE_MIN_STEPS * max(d, edge / _poisson.REMESH_EDGE_RATIO)
+
+
+def visible_points_of(run: _Run, ws: Workspace, bone: BoneWork,
+                      progress: Progress) -> np.ndarray:
+    """The visible points of W_H0 (eq. 1) and B*'s HT part; returns Poisson's input, the
+    thinned visible points, in the masks' box coordinates (grid mm - ``masks.origin``)."""
+    params, masks, d = run.params, bone.masks, ws.d
+    # The hyper-spherical mapping sees W_H0's own boundary (inner walls of cavities and pores
+    # included: eq. (1) hides them), joined by the low-density bone out of reach of W_H0.
+    candidates = voxel_points(boundary_voxels(masks.w_h0 | masks.far), d)
+    if len(candidates) < 10:
+        raise ReconstructionError(
+            f"Almost nothing of {bone.name} is in the threshold windows ({len(candidates)} "
+            "boundary points): lower H0/HT or leave them on auto, and check the segment.")
+    vis_idx, bone.vis_info, every = visible_points(
+        candidates, d, views=params.views, view_distance=params.view_distance,
+        log_radius=params.log_radius, progress=progress, full=True)
+    bone.n_candidates = len(candidates)
+    bone.visible = candidates[vis_idx] + masks.origin       # Poisson's input: thinned
+    bone.visible_all = candidates[every] + masks.origin     # S(P_H0) of B*: all of them
+    # B* = S(P_H0) U (P_HT - P_H0); of P_HT - P_H0 only the outer boundary can be reached by
+    # the directional search, placed sub-voxel where the CT crosses HT.
+    b_ht, crossed = crossing_points(ws.ct_f[masks.box], masks.occupancy, ws.ht, d, crossed=True)
+    # Of P_HT - P_H0 the deformation needs the bone that W_H0 misses (low-density bone, a
+    # cortex below H0): HT crossings more than HT_BEYOND_H0_MM beyond W_H0. Nearer ones are the
+    # partial-volume foot of dense cortex, which would only pull the surface outward.
+    if len(b_ht):
+        from .mesh.distance import distance_outside
+
+        gap_to_h0 = distance_outside(masks.w_h0) * d
+        keep = sample_field(gap_to_h0, b_ht, d) > HT_BEYOND_H0_MM
+        b_ht, crossed = b_ht[keep], crossed[keep]
+    if not crossed.all():
+        bone.fallbacks.add("visible", "HT points of B* where the CT does not cross HT between "
+                           "the boundary voxel and its outside neighbour: placed mid-edge "
+                           "(t = 0.5)", int((~crossed).sum()), "points")
+    bone.b_ht = b_ht + masks.origin
+    return candidates[vis_idx]
+
+
+def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> None:
+    """M0: screened Poisson of the visible ``points`` (box coordinates), remeshed closed at
+    edge length d*."""
+    params, d, masks, own, k = run.params, ws.d, bone.masks, ws.own, bone.k
+    origin = masks.origin
+    edge = params.edge_length if params.edge_length is not None else d
+    normals = mask_normals(masks.solid_h0, points, d)
+    # M0 joins what Poisson at depth <= 7 cannot resolve (a plate of a few voxels in a long
+    # bone) and, where it then has tunnels its segment does not have, the segment (box
+    # coordinates).
+    trusted = (ws.labels[masks.box] == k) & ((own.owner[masks.box] == 0)
+                                             | (own.owner[masks.box] == k))
+    if own.unsupported is not None:
+        trusted &= ~own.unsupported[masks.box]
+    fusion = _poisson.Fusion(label=trusted, label_origin=np.zeros(3), label_spacing=d,
+                             genus=_plaus.segment_genus(trusted, d),
+                             close_mm=(ws.prep.coarseness,))
+    plates = bone.plates
+    if plates is not None and plates.n:
+        fusion.plates = lambda shape, lo, h: plates.field(shape, np.asarray(lo) + origin, h)
+        fusion.plates_box = (plates.points.min(axis=0) - origin,
+                             plates.points.max(axis=0) - origin)
+    m0, raw = initial_surface(points, normals, params.poisson_depth, edge, fusion=fusion)
+    bone.fusion = fusion
+    bone.m0 = Surface(m0.vertices + origin, m0.faces)
+    bone.raw_vertices = raw.n_vertices
+    bone.vertices = bone.m0.vertices.copy()
+
+
+def _others_distance(ws: Workspace, bone: BoneWork) -> Optional[np.ndarray]:
+    """Distance (mm, float32, on the masks' box) to the voxels other bones own: where the
+    bone touches another no CT edge is expected (see refine_stage)."""
+    box = bone.masks.box
+    owner = ws.own.owner[box]
+    others = (owner > 0) & (owner != bone.k)
+    if not others.any():
+        return None
+    dist, f = _threshold.coarse_distance(others, ws.d)
+    idx = [np.minimum(np.arange(n) // f, dist.shape[a] - 1) for a, n in enumerate(others.shape)]
+    return dist[np.ix_(*idx)].astype(np.float32)
+
+
+def territory_stage(run: _Run, ws: Workspace, bones: dict) -> None:
+    """The midway surfaces between bones, from the M0s (stages.contacts.territories)."""
+    run.stage("territories")
+    with timed(run.times, "territories"):
+        ws.fixed = _fixed_masks(ws.own, ws.labels, ws.targets, len(ws.prep.values))
+        if len(bones) > 1 or ws.fixed:
+            ws.territories = _contacts.territories(
+                {k: (b.m0.vertices, b.m0.faces) for k, b in bones.items()}, ws.fixed,
+                ws.labels.shape, ws.d)
+
+
+def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
+    """Per bone: the deformation (eq. 15) and the edge refinement, never toward another
+    bone's side of a joint."""
+    params = run.params
+    sub = run.stage("deform")
     if params.refine_edges:
-        ct_smooth = ndimage.gaussian_filter(
-            prep.ct, sigma=max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / d), mode="nearest")
-    for i, k in enumerate(prep.targets):
-        if k not in bones:
-            continue
-        part = sub.stage(i / len(prep.targets), (i + 1) / len(prep.targets))
-        allowed = _contacts.allowed_test(terr.get(k), d, params.min_gap)
-        _shape_bone(bones[k], ct_smooth, ht, params, d, allowed, part)
+        ws.ct_smooth = ndimage.gaussian_filter(
+            ws.prep.ct, sigma=max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / ws.d),
+            mode="nearest")
 
-    # --- joint gaps from the final surfaces
-    sub = _stage(prog, "contacts")
-    t0 = time.perf_counter()
-    if terr and any(v is not None for v in terr.values()):
-        surfaces = {k: [b["vertices"], b["faces"]] for k, b in bones.items()}
-        history = _contacts.resolve_contacts(surfaces, fixed, lab.shape, d, params.min_gap,
-                                             progress=sub.stage(0.0, 0.6))
-        # The fields are voxel-accurate; the exact test decides. Pairs that still cross get
-        # more passes with a wider margin.
-        for extra in range(1, CONTACT_RETRIES + 1):
-            crossing = _crossing_pairs(surfaces)
-            if not crossing:
-                break
-            involved = {k for pair in crossing for k in pair}
-            sub_surfaces = {k: surfaces[k] for k in involved}
-            others = dict(fixed)
-            for k in surfaces:
-                if k not in involved:
-                    others[f"bone{k}"] = _contacts.voxelize(surfaces[k][0], surfaces[k][1],
-                                                            lab.shape, d)
-            history += _contacts.resolve_contacts(sub_surfaces, others, lab.shape, d,
-                                                  params.min_gap + extra * d,
-                                                  progress=sub.stage(0.6, 1.0))
-        else:
-            # Still crossing after the field passes: a sub-voxel sliver; moved apart exactly.
-            crossing = _crossing_pairs(surfaces)
-            for a, b in crossing:
-                va, vb, _ = _contacts.push_apart_exact(surfaces[a][0], surfaces[a][1],
-                                                      surfaces[b][0], surfaces[b][1], d)
-                surfaces[a][0], surfaces[b][0] = va, vb
+    def shape(k, part):
+        bone = bones[k]
+        allowed = _contacts.allowed_test(ws.territories.get(k), ws.d, params.min_gap)
+        with timed(bone.times, "deform"):
+            deform(run, ws, bone, allowed, part.stage(0.0, 0.6))
+        with timed(bone.times, "refine"):
+            if params.refine_edges:
+                refine(run, ws, bone, allowed, part.stage(0.6, 1.0))
+
+    run.each(ws.targets, sub, shape)
+    for k in [k for k in bones if k in run.failed]:
+        del bones[k]
+
+
+def deform(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress) -> None:
+    """The paper's deformation of M0 toward B* (stages.deform)."""
+    params, d, masks, m0 = run.params, ws.d, bone.masks, bone.m0
+    origin = masks.origin
+    constraints = np.vstack([bone.visible_all, bone.b_ht])
+    if allowed is not None:
+        constraints = constraints[allowed(constraints)]
+    bone.constraints = constraints
+    verts = m0.vertices.copy()
+    if params.iterations > 0 and len(constraints):
+        occ = ndimage.gaussian_filter(masks.occupancy.astype(np.float32),
+                                      sigma=OCCUPANCY_SIGMA_VOXELS)
+        deformer = Deformer(m0.vertices - origin, m0.faces, constraints - origin,
+                            lambda p: sample_field(occ, p, d) >= OCCUPANCY_LEVEL,
+                            mean_edge_length(m0.vertices, m0.faces),
+                            iterations=params.iterations, alpha=params.alpha, beta=params.beta,
+                            search_radius=params.search_radius,
+                            search_offset=params.search_offset, fallbacks=bone.fallbacks)
+        verts = deformer.run(progress=progress) + origin
+        bone.history = deformer.history
+    elif params.iterations > 0:
+        bone.fallbacks.add("deform", "no constraint point on the bone's side of its joints: "
+                           "M0 is kept undeformed", params.iterations, "iterations")
+    bone.deformed = verts
+    bone.vertices = verts
+
+
+def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress) -> None:
+    """Our sub-voxel edge refinement (stages.refine) and its support on the free surface."""
+    params, d = run.params, ws.d
+    before = bone.vertices
+    plates = bone.plates
+    verts, shift, frac, found = refine_to_edges(
+        before, bone.faces, ws.ct_smooth, d, ws.ht, edge_level=params.edge_level,
+        allowed=allowed, progress=progress, fallbacks=bone.fallbacks,
+        plate_targets=plates.targets if plates is not None and plates.n else None)
+    # Edge support on the free surface: where the bone touches another one (no joint space
+    # on the CT) no edge is expected.
+    free = np.ones(len(verts), bool)
+    if bone.others_distance is not None:
+        free = sample_field(bone.others_distance, before - bone.masks.origin, d,
+                            cval=1e3) > FREE_SURFACE_MM
+    support = float(found[free].mean()) if free.any() else float(found.mean())
+    # Applied: some of the refinement survived its checks (else the input came back).
+    bone.refinement = Refinement(applied=not np.array_equal(verts, before),
+                                 fraction_with_edge=support,
+                                 mean_shift_mm=float(shift.mean()),
+                                 mean_abs_shift_mm=float(np.abs(shift).mean()))
+    bone.vertices = verts
+
+
+def contact_stage(run: _Run, ws: Workspace, bones: dict) -> None:
+    """Joint gaps from the final surfaces: every vertex beyond its territory moved back, then
+    the exact test; pairs that still cross get passes with a wider margin, then the exact
+    push-apart (stages.contacts)."""
+    sub = run.stage("contacts")
+    with timed(run.times, "contacts"):
+        terr = ws.territories
+        if not (terr and any(v is not None for v in terr.values())):
+            return
+        surfaces = {k: [b.vertices, b.faces] for k, b in bones.items()}
+        history = _resolve_with_retries(surfaces, ws.fixed, ws.labels.shape, ws.d,
+                                        run.params.min_gap, sub,
+                                        {k: b.fallbacks for k, b in bones.items()},
+                                        {k: b.name for k, b in bones.items()})
         for k, b in bones.items():
-            b["vertices"] = surfaces[k][0]
-            b["contacts"] = {"passes": [{"moved": rec[k][0], "still_closer_than_gap": rec[k][1]}
-                                        for rec in history if k in rec]}
-    shared.contacts = time.perf_counter() - t0
+            b.vertices = surfaces[k][0]
+            b.contacts = {"passes": [{"moved": rec[k][0], "still_closer_than_gap": rec[k][1]}
+                                     for rec in history if k in rec]}
+            discarded = sum(rec[k][2] for rec in history if k in rec)
+            if discarded:
+                b.fallbacks.add("contacts", "a contact pass failed the self-intersection check: "
+                                "its moves were discarded", discarded, "vertices")
 
-    # --- per bone: caps, checks, plausibility, report
-    sub = _stage(prog, "checks")
-    results = []
-    for i, k in enumerate(prep.targets):
-        part = sub.stage(i / (len(prep.targets) + 1), (i + 1) / (len(prep.targets) + 1))
-        if k in bones:
-            try:
-                results.append(_finish_bone(prep, own, lab, k, bones[k], params, band,
-                                            name_of(k), part, thresholds))
-                continue
-            except Exception as exc:  # noqa: BLE001 - fail() re-raises unless keep_going
-                fail(k, exc)
-        results.append(ReconstructionResult(surface=None, distance_to_constraints=None,
-                                            report=None, label=int(prep.values[k - 1]),
-                                            name=name_of(k), error=failed[k]))
 
-    # --- every pair, exactly
-    pairs = []
+def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, min_gap: float,
+                          progress: Progress, fallbacks: dict, names: dict) -> list:
+    """stages.contacts.resolve_contacts on ``surfaces`` ({key: [vertices, faces]}, updated
+    in place); the fields are voxel-accurate and the exact test decides: pairs that still
+    cross get more passes with a wider margin, and a sub-voxel sliver left after those is
+    moved apart exactly. Both are noted in ``fallbacks`` ({key: FallbackLog}; ``names``:
+    {key: name}). Returns the passes' records."""
+    history = _contacts.resolve_contacts(surfaces, fixed, shape, d, min_gap,
+                                         progress=progress.stage(0.0, 0.6))
+    for extra in range(1, CONTACT_RETRIES + 1):
+        crossing = _crossing_pairs(surfaces)
+        if not crossing:
+            break
+        involved = {k for pair in crossing for k in pair}
+        for a, b in crossing:
+            for k, other in ((a, b), (b, a)):
+                fallbacks[k].add("contacts", "the surfaces still crossed after the contact "
+                                 "passes: more passes with a wider margin", 1, "passes",
+                                 f"with {names[other]}")
+        others = dict(fixed)
+        for k in surfaces:
+            if k not in involved:
+                others[f"bone{k}"] = _contacts.voxelize(surfaces[k][0], surfaces[k][1], shape, d)
+        history += _contacts.resolve_contacts({k: surfaces[k] for k in involved}, others, shape,
+                                              d, min_gap + extra * d,
+                                              progress=progress.stage(0.6, 1.0))
+    else:
+        # Still crossing after the field passes: a sub-voxel sliver; moved apart exactly.
+        for a, b in _crossing_pairs(surfaces):
+            va, vb, _ = _contacts.push_apart_exact(surfaces[a][0], surfaces[a][1],
+                                                  surfaces[b][0], surfaces[b][1], d)
+            for k, other, new in ((a, b, va), (b, a, vb)):
+                fallbacks[k].add("contacts", "a sub-voxel crossing left after the field passes "
+                                 "was moved apart exactly (last resort)",
+                                 int(np.any(new != surfaces[k][0], axis=1).sum()), "vertices",
+                                 f"with {names[other]}")
+            surfaces[a][0], surfaces[b][0] = va, vb
+    return history
+
+
+def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
+                progress: Progress) -> ReconstructionResult:
+    """Caps at the image boundary, the checks (SPEC §4), plausibility, the report."""
+    name, grid = bone.name, ws.prep.grid
+    planes = ws.prep.caps.get(bone.k, [])
+    with timed(bone.times, "cap"):
+        verts, faces, flags, cap_area = cap_bone(bone.vertices, bone.faces, planes,
+                                                 bone.fallbacks)
+    progress(0.3, f"{name}: checks")
+    with timed(bone.times, "checks"):
+        phys = grid.grid_to_physical(verts)
+        if enclosed_volume(phys, faces) < 0:  # a reflecting direction matrix flips orientation
+            faces = faces[:, ::-1].copy()
+        checks = check_surface(phys, faces)
+    _raise_failed_checks(checks, phys, faces, planes, name)
+    progress(0.6, f"{name}: plausibility")
+    with timed(bone.times, "plausibility"):
+        plaus, box, segment = plausibility_of(run, ws, bone, verts, faces, phys, planes)
+    warnings = _plausibility_warnings(run, plaus)
+    plaus.segment_genus = _plaus.segment_genus(
+        segment & _plaus.image_mask(box, planes, ws.d), ws.d)
+    warnings += _plaus.tunnel_warning(name, checks.genus, plaus.segment_genus)
+    constraints = bone.constraints
+    dist, _ = cKDTree(grid.grid_to_physical(constraints)).query(phys, workers=-1) \
+        if len(constraints) else (np.zeros(len(phys)), None)
+    with timed(bone.times, "plausibility"):
+        evidence, confidence, summary = evidence_of(run, ws, bone, verts, faces, flags)
+    warnings += _evidence.evidence_warnings(name, summary,
+                                            _plate_min_thickness(run.params, ws.d))
+    surface = Surface(phys, faces, "LPS", {"DistanceToConstraints": dist, "Evidence": evidence,
+                                           "Confidence": confidence},
+                      {"Cap": flags} if planes else {})
+    report = bone_report(run, ws, bone, checks, phys, faces, dist, plaus, warnings,
+                         {"planes": [p.to_dict() for p in planes], "area_mm2": cap_area,
+                          "faces": int(flags.sum())})
+    report.evidence = summary
+    progress(1.0, f"{name}: done")
+    return ReconstructionResult(surface=surface, distance_to_constraints=dist, report=report,
+                                intermediates=_intermediates(run, ws, bone),
+                                label=ws.value_of(bone.k), name=name)
+
+
+def evidence_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, flags) -> tuple:
+    """Per-vertex evidence class and confidence of the finished surface (stages.evidence)."""
+    origin = bone.masks.origin
+    fill = None
+    if bone.fusion is not None and bone.fusion.fill_mask is not None:
+        mask, lo, h = bone.fusion.fill_mask
+        fill = (mask, np.asarray(lo) + origin, h)
+    return _evidence.vertex_evidence(
+        verts, faces, flags, ct_smooth=ws.ct_smooth, spacing=ws.d, ht=ws.ht,
+        soft=ws.thresholds["soft_tissue_hu"],
+        min_contrast=_ownership.LABEL_LEVEL_FRACTION * (ws.ht - ws.thresholds["soft_tissue_hu"]),
+        edge_level=run.params.edge_level, plates=bone.plates,
+        others_distance=bone.others_distance, others_origin=origin, fill=fill,
+        free_mm=FREE_SURFACE_MM, resolution=float(max(ws.prep.ct_spacing)))
+
+
+def cap_bone(vertices: np.ndarray, faces: np.ndarray, planes: list,
+             fallbacks: Optional[FallbackLog] = None) -> tuple:
+    """(vertices, faces, cap flags (m,) uint8, cap area mm^2): the surface clipped and capped
+    at each plane where the image cuts the bone (mesh.cap)."""
+    flags = np.zeros(len(faces), np.uint8)
+    area = 0.0
+    for plane in planes:
+        vertices, faces, flags, a = cap_plane(vertices, faces, flags, plane.axis, plane.side,
+                                              plane.position, mean_edge_length(vertices, faces),
+                                              fallbacks)
+        area += a
+    return vertices, faces, flags, area
+
+
+def _raise_failed_checks(checks, phys, faces, planes, name) -> None:
+    if not checks.ok and planes and checks.n_components > 1:
+        pieces = _component_volumes(phys, faces)
+        raise SurfaceCheckError(
+            f"{name} is cut by the image boundary into {len(pieces)} separate pieces inside the "
+            f"image ({', '.join(f'{v / 1000:.1f}' for v in pieces)} ml): they join outside the "
+            "field of view, so one closed surface cannot hold them. Use a CT that contains more "
+            "of the bone, or split the segment into one segment per piece.", report=checks)
+    if not checks.ok:
+        raise SurfaceCheckError(
+            f"The surface of {name} failed the watertight 2-manifold checks: "
+            + "; ".join(checks.problems)
+            + ". Try a finer resample spacing, more deformation stiffness (alpha), or fewer "
+            "iterations.", report=checks)
+
+
+def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys,
+                    planes) -> tuple:
+    """(stages.plausibility's measures, gated; the box they were measured on (slices of the
+    working grid); the bone's segment on that box, (z, y, x) bool)."""
+    k, d, own, lab = bone.k, ws.d, ws.own, ws.labels
+    seg_all = lab == k
+    box = _threshold.bbox_slices(seg_all | (own.owner == k),
+                                 int(np.ceil((ws.band + 3 * d) / d)) + 2)
+    corner = np.array([s.start for s in box][::-1], dtype=np.float64) * d
+    inside = _contacts.voxelize(verts - corner, faces, tuple(s.stop - s.start for s in box), d)
+    lab_b = lab[box]
+    cores_b = own.cores[box]
+    frac = bone.refinement.fraction_with_edge
+    plaus = _plaus.measure(
+        inside, verts - corner, seg_all[box], (lab_b > 0) & (lab_b != k),
+        (cores_b > 0) & (cores_b != k), _plaus.image_mask(box, planes, d), d,
+        volume_mm3=enclosed_volume(phys, faces), coarseness=ws.prep.coarseness,
+        band_mm=ws.band, edge_support=float("nan") if frac is None else frac,
+        owned=own.owner[box] == k,
+        unsupported=None if own.unsupported is None else own.unsupported[box],
+        unsupported_pieces=len(own.info.get("unsupported", {}).get(k, [])))
+    _plaus.gate(plaus, coarseness=ws.prep.coarseness, band_mm=ws.band, name=bone.name)
+    return plaus, box, seg_all[box]
+
+
+def _plausibility_warnings(run: _Run, plaus) -> list:
+    """The gate's problems as an error (on_implausible = fail) or warnings, and its warnings."""
+    warnings = []
+    if plaus.problems:
+        if run.params.on_implausible == "fail":
+            raise PlausibilityError(
+                "The surface is watertight but not plausible: " + "; ".join(plaus.problems)
+                + ". (on_implausible = warn returns it with these warnings.)", report=plaus)
+        warnings = list(plaus.problems)
+    return warnings + plaus.warnings
+
+
+def bone_report(run: _Run, ws: Workspace, bone: BoneWork, checks, phys, faces, dist, plaus,
+                warnings, cap: dict) -> PipelineReport:
+    """The typed report of one finished bone."""
+    prep, own, sep = ws.prep, ws.own, bone.separation
+    return PipelineReport(
+        version=__version__, parameters=run.params.to_dict(), input=prep.info,
+        timings=bone.times, threshold=dict(
+            bone.masks.info, h0=ws.thresholds["h0"], ht=ws.thresholds["ht"],
+            plates=bone.plates.info if bone.plates is not None else {},
+            fusion=dict(bone.fusion.info) if bone.fusion is not None else {}),
+        counts=Counts(p_h0_surface_points=int(bone.n_candidates),
+                      visible_points=int(len(bone.visible)),
+                      ht_boundary_points=int(len(bone.b_ht)),
+                      constraint_points=int(len(bone.constraints)),
+                      poisson_raw_vertices=int(bone.raw_vertices),
+                      m0_vertices=int(bone.m0.n_vertices), m0_faces=int(bone.m0.n_faces),
+                      vertices=int(len(phys)), faces=int(len(faces))),
+        visible=bone.vis_info, deformation=bone.history, refinement=bone.refinement,
+        checks=checks, distance_to_constraints_mm=DistanceSummary.of(dist),
+        mean_edge_length_mm=mean_edge_length(phys, faces), area_mm2=surface_area(phys, faces),
+        volume_mm3=enclosed_volume(phys, faces), constants=pipeline_constants(),
+        label=ws.value_of(bone.k), name=bone.name, thresholds=dict(ws.thresholds),
+        ownership={"core_depth_mm": own.info["core_depth_mm"].get(bone.k),
+                   "owned_voxels": int((own.owner == bone.k).sum())},
+        separation={"erosions_to_separate": sep,
+                    "by": ("threshold" if sep == 0 else f"erosion ({sep} CT voxels)" if sep
+                           else "competition at the CT's valley and the labels")},
+        cap=cap, contacts=bone.contacts, plausibility=plaus, warnings=warnings,
+        fallbacks=list(run.fallbacks) + list(bone.fallbacks))
+
+
+def _intermediates(run: _Run, ws: Workspace, bone: BoneWork) -> dict:
+    """The intermediate results in physical LPS, on request (keep_intermediates)."""
+    if not run.params.keep_intermediates:
+        return {}
+    grid, masks, d = ws.prep.grid, bone.masks, ws.d
+    o = masks.origin
+    m0p = grid.grid_to_physical(bone.m0.vertices)
+    return {
+        "P_H0": grid.grid_to_physical(voxel_points(masks.w_h0, d) + o),
+        "P_HT": grid.grid_to_physical(voxel_points(masks.w_ht & ~masks.w_h0, d) + o),
+        "visible_points": grid.grid_to_physical(bone.visible),
+        "constraints": grid.grid_to_physical(bone.constraints),
+        "M0": Surface(m0p, bone.m0.faces if enclosed_volume(m0p, bone.m0.faces) > 0
+                      else bone.m0.faces[:, ::-1].copy()),
+        "deformed": Surface(grid.grid_to_physical(bone.deformed), bone.faces),
+    }
+
+
+def _failed_result(ws: Workspace, k: int, error: BaseException) -> ReconstructionResult:
+    return ReconstructionResult(surface=None, distance_to_constraints=None, report=None,
+                                label=ws.value_of(k), name=ws.name_of(k), error=error)
+
+
+def pair_stage(ws: Workspace, results: list) -> list:
+    """Every pair of finished bones checked exactly (PairReport), the joint warnings; an
+    interpenetrating pair fails the run (ReconstructionError)."""
+    own = ws.own
     contact_of = {(cc["a"], cc["b"]): cc for cc in own.contacts}
-    by_k = dict(zip(prep.targets, results))
-    good = [k for k in prep.targets if by_k[k].ok]
+    by_k = dict(zip(ws.targets, results))
+    good = [k for k in ws.targets if by_k[k].ok]
+    pairs = []
     for i, a in enumerate(good):
         for b in good[i + 1:]:
             ra, rb = by_k[a], by_k[b]
             rep = _contacts.pair_report(ra.surface.vertices, ra.surface.faces,
                                         rb.surface.vertices, rb.surface.faces)
             joint = contact_of.get((min(a, b), max(a, b)))
-            pairs.append(PairReport(a=name_of(a), b=name_of(b), **rep,
-                                    joint_contact_mm2=float(joint["contact_area_mm2"]) if joint else 0.0,
-                                    joint_valley_seen_fraction=(float(joint["valley_seen_fraction"])
-                                                                if joint else None)))
+            pairs.append(PairReport(
+                a=ws.name_of(a), b=ws.name_of(b), **rep,
+                joint_contact_mm2=float(joint["contact_area_mm2"]) if joint else 0.0,
+                joint_valley_seen_fraction=(float(joint["valley_seen_fraction"])
+                                            if joint else None)))
     for p in pairs:
         seen = p.joint_valley_seen_fraction
         if seen is not None and seen < JOINT_WARN_SEEN and p.joint_contact_mm2 > JOINT_WARN_MIN_MM2:
@@ -408,13 +962,13 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     for cc in own.contacts:
         for k, other in ((cc["a"], cc["b"]), (cc["b"], cc["a"])):
             seen = cc.get("valley_seen_fraction")
-            if (k in good and other not in prep.targets and other < own.other and seen is not None
+            if (k in good and other not in ws.targets and other < own.other and seen is not None
                     and seen < JOINT_WARN_SEEN and cc["contact_area_mm2"] > JOINT_WARN_MIN_MM2):
                 by_k[k].report.warnings.append(
-                    f"{name_of(k)} | {name_of(other)} (neighbour): the CT shows a joint space on "
-                    f"only {100 * seen:.0f} % of their {cc['contact_area_mm2']:.0f} mm^2 contact; "
-                    "elsewhere the boundary follows the segments' labels: check the surface at "
-                    "the joint")
+                    f"{ws.name_of(k)} | {ws.name_of(other)} (neighbour): the CT shows a joint "
+                    f"space on only {100 * seen:.0f} % of their {cc['contact_area_mm2']:.0f} "
+                    "mm^2 contact; elsewhere the boundary follows the segments' labels: check the "
+                    "surface at the joint")
     bad = [p for p in pairs if not p.ok]
     if bad:
         text = "; ".join(f"{p.a} and {p.b}: {p.crossing_face_pairs} crossing face pairs, "
@@ -422,25 +976,21 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
         raise ReconstructionError(
             f"The surfaces of neighbouring bones interpenetrate ({text}). Check the labels at the "
             "joint, or use a finer resample spacing.")
-    shared.total = time.perf_counter() - t_all
-    for r in results:
-        if not r.ok:
-            continue
-        r.report.timings.import_open3d = shared.import_open3d
-        r.report.timings.prepare = shared.prepare
-        r.report.timings.filter = shared.filter
-        r.report.timings.ownership = shared.ownership
-        r.report.timings.territories = shared.territories
-        r.report.timings.contacts = shared.contacts
-        r.report.timings.total = shared.total
-    report = JointReport(
-        version=__version__, parameters=params.to_dict(), input=prep.info, thresholds=thresholds,
-        ownership=dict(own.info, contacts=[dict(cc, a=_pair_name(cc["a"], own, name_of),
-                                                b=_pair_name(cc["b"], own, name_of))
-                                           for cc in own.contacts]),
-        pairs=pairs, timings=shared, neighbours=[str(names.get(v, v)) for v in neighbour_values])
-    prog(1.0, "done")
-    return JointResult(bones=results, pairs=pairs, report=report)
+    return pairs
+
+
+def _shared_times(times: StageTimes, shared: StageTimes) -> None:
+    """The shared stages' seconds (and the total) into a bone's own times."""
+    for stage in ("import_open3d", "prepare", "filter", "ownership", "territories", "contacts",
+                  "total"):
+        setattr(times, stage, getattr(shared, stage))
+
+
+def _ownership_info(ws: Workspace) -> dict:
+    own = ws.own
+    return dict(own.info, contacts=[dict(cc, a=_pair_name(cc["a"], own, ws.name_of),
+                                         b=_pair_name(cc["b"], own, ws.name_of))
+                                    for cc in own.contacts])
 
 
 def size_problems(prep, params: Parameters, names: Optional[dict] = None) -> dict:
@@ -523,6 +1073,14 @@ def _threshold_error(name, ht, theta_max, vals):
 
     lo = float(np.min(vals)) if len(vals) else float("nan")
     hi = float(np.max(vals)) if len(vals) else float("nan")
+    if hi < ht:
+        # Nothing inside the segment is bone-like at all: the segment is off the bone.
+        what = "air" if hi < -200 else "fat" if hi < -30 else "soft tissue"
+        return ThresholdError(
+            f"Segment {name} covers no bone on this CT: its HU range is {lo:.0f} to {hi:.0f} "
+            f"({what}), all below HT = {ht:g} HU. Check that the segment belongs to this CT and "
+            "lies on the bone (a misplaced or wrong segment), or lower HT if the bone is this "
+            "faint.")
     return ThresholdError(
         f"No voxel of segment {name} lies in [HT, theta_max] = [{ht:g}, {theta_max:g}] HU "
         f"(the segment's HU range is {lo:.0f} to {hi:.0f}): lower HT (or leave it on auto), or "
@@ -543,218 +1101,10 @@ def _fixed_masks(own, lab, targets, n) -> dict:
     return fixed
 
 
-def _bone_surface(prep, ct_f, own, lab, k, h0, ht, c, params, progress, name, step_voxels):
-    """Threshold windows, visible points and M0 of bone k (grid mm)."""
-    d = prep.grid.spacing
-    times = StageTimes()
-    t0 = time.perf_counter()
-    masks = bone_masks(ct_f, own.owner, own.cores, lab, k, d, h0=h0, theta_max=params.theta_max,
-                       coarseness=c, opening=params.opening, closing=params.closing)
-    separation = erosions_to_separate(ct_f, own.owner, k, d, h0=h0, theta_max=params.theta_max,
-                                      step_voxels=step_voxels, max_erosions=params.max_erosions)
-    times.threshold = time.perf_counter() - t0
-    progress(0.2, f"{name}: visible points")
-    t0 = time.perf_counter()
-    origin = masks.origin
-    # The hyper-spherical mapping sees W_H0's own boundary (inner walls of cavities and pores
-    # included: eq. (1) hides them), joined by the low-density bone out of reach of W_H0.
-    candidates = voxel_points(boundary_voxels(masks.w_h0 | masks.far), d)
-    if len(candidates) < 10:
-        raise ReconstructionError(
-            f"Almost nothing of {name} is in the threshold windows ({len(candidates)} boundary "
-            "points): lower H0/HT or leave them on auto, and check the segment.")
-    vis_idx, vis_info, every = visible_points(candidates, d, views=params.views,
-                                              view_distance=params.view_distance,
-                                              log_radius=params.log_radius,
-                                              progress=progress.stage(0.2, 0.5), full=True)
-    visible = candidates[vis_idx]       # Poisson's input: the thinned visible points
-    visible_all = candidates[every]     # S(P_H0) for the deformation: all of them
-    # B* = S(P_H0) U (P_HT - P_H0); of P_HT - P_H0 only the outer boundary can be reached by
-    # the directional search, placed sub-voxel where the CT crosses HT.
-    b_ht = crossing_points(ct_f[masks.box], masks.occupancy, ht, d)
-    # Of P_HT - P_H0 the deformation needs the bone that W_H0 misses (low-density bone, a
-    # cortex below H0): HT crossings more than HT_BEYOND_H0_MM beyond W_H0. Nearer ones are the
-    # partial-volume foot of dense cortex, which would only pull the surface outward.
-    if len(b_ht):
-        from .mesh.distance import distance_outside
-
-        gap_to_h0 = distance_outside(masks.w_h0) * d
-        b_ht = b_ht[sample_field(gap_to_h0, b_ht, d) > HT_BEYOND_H0_MM]
-    times.visible = time.perf_counter() - t0
-    progress(0.5, f"{name}: Poisson surface M0")
-    t0 = time.perf_counter()
-    edge = params.edge_length if params.edge_length is not None else d
-    normals = mask_normals(masks.solid_h0, visible, d)
-    m0, raw = initial_surface(visible, normals, params.poisson_depth, edge)
-    m0 = Surface(m0.vertices + origin, m0.faces)
-    times.poisson = time.perf_counter() - t0
-    progress(1.0, f"{name}: M0 done")
-    others = (own.owner[masks.box] > 0) & (own.owner[masks.box] != k)
-    others_distance = None
-    if others.any():
-        dist, f = _threshold.coarse_distance(others, d)
-        idx = [np.minimum(np.arange(n) // f, dist.shape[a] - 1) for a, n in enumerate(others.shape)]
-        others_distance = dist[np.ix_(*idx)].astype(np.float32)
-    return {"masks": masks, "m0": m0, "raw_vertices": raw.n_vertices,
-            "others_distance": others_distance,
-            "visible": visible + origin, "visible_all": visible_all + origin,
-            "b_ht": b_ht + origin, "n_candidates": len(candidates),
-            "vis_info": vis_info, "times": times, "separation": separation,
-            "vertices": m0.vertices.copy(), "faces": m0.faces, "history": [],
-            "refinement": Refinement(applied=False), "contacts": {}}
-
-
-def _shape_bone(b, ct_smooth, ht, params, d, allowed, progress):
-    """Deformation (paper eq. 15) and edge refinement (ours), in place on ``b``."""
-    masks, m0 = b["masks"], b["m0"]
-    origin = masks.origin
-    t0 = time.perf_counter()
-    constraints = np.vstack([b["visible_all"], b["b_ht"]])
-    if allowed is not None:
-        constraints = constraints[allowed(constraints)]
-    b["constraints"] = constraints
-    verts = m0.vertices.copy()
-    if params.iterations > 0 and len(constraints):
-        occ = ndimage.gaussian_filter(masks.occupancy.astype(np.float32), sigma=OCCUPANCY_SIGMA_VOXELS)
-        deformer = Deformer(m0.vertices - origin, m0.faces, constraints - origin,
-                            lambda p: sample_field(occ, p, d) >= OCCUPANCY_LEVEL,
-                            mean_edge_length(m0.vertices, m0.faces),
-                            iterations=params.iterations, alpha=params.alpha, beta=params.beta,
-                            search_radius=params.search_radius,
-                            search_offset=params.search_offset)
-        verts = deformer.run(progress=progress.stage(0.0, 0.6)) + origin
-        b["history"] = deformer.history
-    b["times"].deform = time.perf_counter() - t0
-    b["deformed"] = verts
-    t0 = time.perf_counter()
-    if params.refine_edges:
-        before = verts
-        verts, shift, frac, found = refine_to_edges(verts, b["faces"], ct_smooth, d, ht,
-                                                    edge_level=params.edge_level, allowed=allowed,
-                                                    progress=progress.stage(0.6, 1.0))
-        # Edge support on the free surface: where the bone touches another one (no joint space
-        # on the CT) no edge is expected.
-        free = np.ones(len(verts), bool)
-        if b.get("others_distance") is not None:
-            free = sample_field(b["others_distance"], before - origin, d, cval=1e3) > FREE_SURFACE_MM
-        support = float(found[free].mean()) if free.any() else float(found.mean())
-        b["refinement"] = Refinement(applied=True, fraction_with_edge=support,
-                                     mean_shift_mm=float(shift.mean()),
-                                     mean_abs_shift_mm=float(np.abs(shift).mean()))
-    b["times"].refine = time.perf_counter() - t0
-    b["vertices"] = verts
-
-
-def _finish_bone(prep, own, lab, k, b, params, band, name, progress, thresholds):
-    grid, d = prep.grid, prep.grid.spacing
-    times = b["times"]
-    verts, faces = b["vertices"], b["faces"]
-    t0 = time.perf_counter()
-    flags = np.zeros(len(faces), np.uint8)
-    cap_area = 0.0
-    planes = prep.caps.get(k, [])
-    for plane in planes:
-        verts, faces, flags, area = cap_plane(verts, faces, flags, plane.axis, plane.side,
-                                              plane.position, mean_edge_length(verts, faces))
-        cap_area += area
-    times.cap = time.perf_counter() - t0
-    progress(0.3, f"{name}: checks")
-    t0 = time.perf_counter()
-    phys = grid.grid_to_physical(verts)
-    if enclosed_volume(phys, faces) < 0:  # a reflecting direction matrix flips orientation
-        faces = faces[:, ::-1].copy()
-    checks = check_surface(phys, faces)
-    times.checks = time.perf_counter() - t0
-    if not checks.ok and planes and checks.n_components > 1:
-        pieces = _component_volumes(phys, faces)
-        raise SurfaceCheckError(
-            f"{name} is cut by the image boundary into {len(pieces)} separate pieces inside the "
-            f"image ({', '.join(f'{v / 1000:.1f}' for v in pieces)} ml): they join outside the "
-            "field of view, so one closed surface cannot hold them. Use a CT that contains more "
-            "of the bone, or split the segment into one segment per piece.", report=checks)
-    if not checks.ok:
-        raise SurfaceCheckError(
-            f"The surface of {name} failed the watertight 2-manifold checks: "
-            + "; ".join(checks.problems)
-            + ". Try a finer resample spacing, more deformation stiffness (alpha), or fewer "
-            "iterations.", report=checks)
-    progress(0.6, f"{name}: plausibility")
-    t0 = time.perf_counter()
-    seg_all = lab == k
-    box = _threshold.bbox_slices(seg_all | (own.owner == k), int(np.ceil((band + 3 * d) / d)) + 2)
-    corner = np.array([s.start for s in box][::-1], dtype=np.float64) * d
-    inside = _contacts.voxelize(verts - corner, faces, tuple(s.stop - s.start for s in box), d)
-    lab_b = lab[box]
-    cores_b = own.cores[box]
-    frac = b["refinement"].fraction_with_edge
-    plaus = _plaus.measure(
-        inside, verts - corner, seg_all[box], (lab_b > 0) & (lab_b != k),
-        (cores_b > 0) & (cores_b != k), _plaus.image_mask(box, planes, d), d,
-        volume_mm3=enclosed_volume(phys, faces), coarseness=prep.coarseness, band_mm=band,
-        edge_support=float("nan") if frac is None else frac, owned=own.owner[box] == k)
-    _plaus.gate(plaus, coarseness=prep.coarseness, band_mm=band, name=name)
-    times.plausibility = time.perf_counter() - t0
-    warnings = []
-    if plaus.problems:
-        if params.on_implausible == "fail":
-            raise PlausibilityError(
-                "The surface is watertight but not plausible: " + "; ".join(plaus.problems)
-                + ". (on_implausible = warn returns it with these warnings.)", report=plaus)
-        warnings = list(plaus.problems)
-    warnings += plaus.warnings
-    plaus.segment_genus = _plaus.segment_genus(seg_all[box] & _plaus.image_mask(box, planes, d), d)
-    warnings += _plaus.tunnel_warning(name, checks.genus, plaus.segment_genus)
-    constraints = b["constraints"]
-    dist, _ = cKDTree(grid.grid_to_physical(constraints)).query(phys, workers=-1) \
-        if len(constraints) else (np.zeros(len(phys)), None)
-    surface = Surface(phys, faces, "LPS", {"DistanceToConstraints": dist},
-                      {"Cap": flags} if planes else {})
-    masks = b["masks"]
-    inter = {}
-    if params.keep_intermediates:
-        o = masks.origin
-        m0p = grid.grid_to_physical(b["m0"].vertices)
-        inter = {
-            "P_H0": grid.grid_to_physical(voxel_points(masks.w_h0, d) + o),
-            "P_HT": grid.grid_to_physical(voxel_points(masks.w_ht & ~masks.w_h0, d) + o),
-            "visible_points": grid.grid_to_physical(b["visible"]),
-            "constraints": grid.grid_to_physical(constraints),
-            "M0": Surface(m0p, b["m0"].faces if enclosed_volume(m0p, b["m0"].faces) > 0
-                          else b["m0"].faces[:, ::-1].copy()),
-            "deformed": Surface(grid.grid_to_physical(b["deformed"]), b["faces"]),
-        }
-    sep = b["separation"]
-    report = PipelineReport(
-        version=__version__, parameters=params.to_dict(), input=prep.info, timings=times,
-        threshold=dict(masks.info, h0=thresholds["h0"], ht=thresholds["ht"]),
-        counts=Counts(p_h0_surface_points=int(b["n_candidates"]),
-                      visible_points=int(len(b["visible"])), ht_boundary_points=int(len(b["b_ht"])),
-                      constraint_points=int(len(constraints)),
-                      poisson_raw_vertices=int(b["raw_vertices"]),
-                      m0_vertices=int(b["m0"].n_vertices), m0_faces=int(b["m0"].n_faces),
-                      vertices=int(len(phys)), faces=int(len(faces))),
-        visible=b["vis_info"], deformation=b["history"], refinement=b["refinement"],
-        checks=checks, distance_to_constraints_mm=DistanceSummary.of(dist),
-        mean_edge_length_mm=mean_edge_length(phys, faces), area_mm2=surface_area(phys, faces),
-        volume_mm3=enclosed_volume(phys, faces), constants=pipeline_constants(),
-        label=int(prep.values[k - 1]), name=name, thresholds=dict(thresholds),
-        ownership={"core_depth_mm": own.info["core_depth_mm"].get(k),
-                   "owned_voxels": int((own.owner == k).sum())},
-        separation={"erosions_to_separate": sep,
-                    "by": ("threshold" if sep == 0 else f"erosion ({sep} CT voxels)" if sep
-                           else "competition at the CT's valley and the labels")},
-        cap={"planes": [p.to_dict() for p in planes], "area_mm2": cap_area,
-             "faces": int(flags.sum())},
-        contacts=b["contacts"], plausibility=plaus, warnings=warnings)
-    progress(1.0, f"{name}: done")
-    return ReconstructionResult(surface=surface, distance_to_constraints=dist, report=report,
-                                intermediates=inter, label=int(prep.values[k - 1]), name=name)
-
-
 def pipeline_constants() -> dict:
     """The fixed settings of the pipeline and its stages ({module: {NAME: value}})."""
     import sys
 
     return constants_of(sys.modules[__name__], _prepare, _filtering, _auto, _ownership,
-                        _threshold, _visible, _poisson, _deform, _refine, _contacts, _plaus,
-                        _cap, _operators, _checks)
+                        _threshold, _plates, _visible, _poisson, _deform, _refine, _contacts,
+                        _plaus, _evidence, _cap, _operators, _checks)

@@ -5,6 +5,9 @@ instead of printing null. :func:`to_json` turns any report into JSON with NaN/in
 
 - :class:`PipelineReport`: what :func:`BoneWatertightLib.pipeline.reconstruct` measured.
 - :class:`CaseReport`: one case run by :mod:`BoneWatertightLib.app.run` (files written, timings).
+- :class:`Fallback`: a stage that could not take its normal step and took a safer one; the
+  stages note them in a :class:`FallbackLog` they are given, the reports list them and the
+  summary line counts them, so a report never claims a stage that did not run.
 """
 
 from __future__ import annotations
@@ -88,6 +91,63 @@ class Refinement:
 
 
 @dataclass
+class Fallback:
+    """A stage that could not take its normal step and took a safer one.
+
+    ``stage``: the stage (a :class:`StageTimes` field where there is one: "refine",
+    "deform", "thresholds", ...); ``what``: what fell back to what, one line; ``count``:
+    how many times or elements (``unit``: "vertices", "points", "solves", "passes", ...);
+    ``where``: which part (a mask, a cap plane, the other bone of a pair, ...).
+    """
+
+    stage: str
+    what: str
+    count: int = 1
+    unit: str = ""
+    where: str = ""
+
+    def text(self) -> str:
+        """'stage (where): what, count unit'."""
+        place = f" ({self.where})" if self.where else ""
+        n = f", {self.count} {self.unit}" if self.unit else ""
+        return f"{self.stage}{place}: {self.what}{n}"
+
+
+class FallbackLog:
+    """The collector a stage is given to note its fallbacks.
+
+    :meth:`add` merges notes of the same stage, what and where (their counts add up), so
+    a step that falls back in every iteration is one record with its total. Iterating
+    gives the :class:`Fallback` records in the order they first happened.
+    """
+
+    def __init__(self):
+        self.records: list = []
+
+    def add(self, stage: str, what: str, count: int = 1, unit: str = "",
+            where: str = "") -> None:
+        for r in self.records:
+            if (r.stage, r.what, r.where, r.unit) == (stage, what, where, unit):
+                r.count += int(count)
+                return
+        self.records.append(Fallback(stage, what, int(count), unit, where))
+
+    def __iter__(self):
+        return iter(self.records)
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+
+def fallbacks_text(fallbacks) -> str:
+    """'fallbacks: 2 (refine: ...; deform: ...)', or '' when there is none."""
+    records = list(fallbacks or [])
+    if not records:
+        return ""
+    return f"fallbacks: {len(records)} (" + "; ".join(r.text() for r in records) + ")"
+
+
+@dataclass
 class PipelineReport:
     """Everything the pipeline measured for one surface (physical LPS, mm)."""
 
@@ -117,6 +177,9 @@ class PipelineReport:
     contacts: dict = field(default_factory=dict)
     plausibility: object = None  # BoneWatertightLib.stages.plausibility.Plausibility
     warnings: list = field(default_factory=list)
+    # Per evidence class (stages.evidence): area and fraction of the surface, mean confidence
+    evidence: dict = field(default_factory=dict)
+    fallbacks: list = field(default_factory=list)  # Fallback records, the run's shared ones first
 
     def to_dict(self) -> dict:
         return to_plain(self)
@@ -162,6 +225,7 @@ class JointReport:
     neighbours: list = field(default_factory=list)
     coordinate_system: str = "LPS"
     units: str = "mm"
+    fallbacks: list = field(default_factory=list)  # the shared stages' Fallback records
 
     def to_dict(self) -> dict:
         return to_plain(self)
@@ -271,12 +335,22 @@ def summary_line(name: str, checks, distances: DistanceSummary, seconds: Optiona
 
 
 def shape_text(pipeline) -> str:
-    """'volume 54.9 ml (segment 66.0 ml, 95 % of it inside), cap 120 mm^2, 1 warning: ...'."""
+    """'volume 54.9 ml (segment 66.0 ml, 95 % of it inside), cap 120 mm^2, 1 warning: ...,
+    fallbacks: 1 (...)'."""
     plaus = getattr(pipeline, "plausibility", None)
     parts = []
     if plaus is not None:
         parts.append(f"volume {plaus.surface_ml:.1f} ml (segment {plaus.segment_ml:.1f} ml, "
                      f"{100 * plaus.segment_inside_fraction:.0f} % of it inside)")
+    if plaus is not None and getattr(plaus, "unsupported_pieces", 0):
+        n = plaus.unsupported_pieces
+        parts.append(f"left out {n} part{'s' if n > 1 else ''} of the segment that the CT shows "
+                     f"as soft tissue ({plaus.unsupported_segment_ml:.1f} ml)")
+    evidence = (getattr(pipeline, "evidence", None) or {}).get("fraction")
+    if evidence:
+        shown = [f"{name} {100 * f:.0f} %" for name, f in evidence.items()
+                 if f >= 0.005 and name != "cap"]
+        parts.append("under the surface: " + ", ".join(shown))
     cap = getattr(pipeline, "cap", None) or {}
     if cap.get("area_mm2"):
         parts.append(f"capped at the image border ({cap['area_mm2']:.0f} mm^2)")
@@ -284,6 +358,9 @@ def shape_text(pipeline) -> str:
     if warnings:
         parts.append(f"{len(warnings)} WARNING{'S' if len(warnings) > 1 else ''}: "
                      + "; ".join(warnings))
+    fallbacks = fallbacks_text(getattr(pipeline, "fallbacks", None))
+    if fallbacks:
+        parts.append(fallbacks)
     return ", ".join(parts)
 
 

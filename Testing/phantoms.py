@@ -79,6 +79,11 @@ _BASE = dict(
     cortex_holes=0,       # number of windows in the cortex (filled with cortex_hole_hu)
     cortex_hole_mm=2.0,   # their radius (mm)
     cortex_hole_hu=220.0,
+    # False-positive blobs of the rough segment that touch the bone from the soft tissue (as AI
+    # segmentations produce): this many balls of radius false_island_mm whose centres lie
+    # false_island_mm outside the true surface (away from the cup); stream (seed, 4).
+    false_islands=0,
+    false_island_mm=3.0,
 )
 
 CASES: dict[str, dict] = {
@@ -274,6 +279,8 @@ class _Model:
             self.lesion = (c, r_l)
         self._place_pores(rng)
         self.cortex_holes = np.zeros((0, 3))
+        # Centres (local mm) of the rough segment's false blobs touching the bone (false_islands).
+        self.false_island_centres = np.zeros((0, 3))
         if cfg.get("cortex_holes", 0) > 0:
             self._place_cortex_holes(aux)
 
@@ -679,6 +686,8 @@ def _rough_mask(model, cfg, rng, ct_size, ct_spacing):
     away = np.flatnonzero((model.bone_sdf(p) > 6.0 * model.s + 3 * msp.max()) & interior)
     for c in p[rng.choice(away, size=min(3, len(away)), replace=False)]:
         m |= _sphere(p, c, 1.2 * msp.max()) < 0
+    if cfg["false_islands"]:
+        m |= _touching_islands(model, cfg, p, lo_ok, hi_ok)
     if cfg["neighbour"]:
         m &= model.cup_sdf(p) > 0.5 * msp.max()
     arr = m.reshape(Z.shape).astype(np.uint8)
@@ -687,6 +696,31 @@ def _rough_mask(model, cfg, rng, ct_size, ct_spacing):
     img.SetDirection(model.direction.ravel().tolist())
     img.SetOrigin(model.to_physical(m0[None])[0].tolist())
     return img
+
+
+def _touching_islands(model, cfg, p, lo_ok, hi_ok):
+    """Balls (radius r = false_island_mm) centred r outside the true surface, at points of the
+    bone's surface drawn from the stream (seed, 4), at least 3 r + the gap from the cup and
+    inside the mask grid's interior: (n,) bool over the points ``p`` (local mm)."""
+    r = float(cfg["false_island_mm"])
+    rng = np.random.default_rng([int(cfg["_seed"]), 4])
+    # Candidate centres: mask-grid points at distance r outside the bone.
+    sdf = model.bone_sdf(p)
+    ok = (np.abs(sdf - r) < 0.5) & np.all((p >= lo_ok + r) & (p <= hi_ok - r), axis=1)
+    if cfg["neighbour"]:
+        ok &= model.cup_sdf(p) > 3.0 * r + cfg["gap"]
+    cand = np.flatnonzero(ok)
+    out = np.zeros(len(p), bool)
+    chosen = []
+    for i in rng.permutation(cand):
+        c = p[i]
+        if all(np.linalg.norm(c - q) > 6.0 * r for q in chosen):
+            chosen.append(c)
+            out |= _sphere(p, c, r) < 0
+        if len(chosen) == cfg["false_islands"]:
+            break
+    model.false_island_centres = np.array(chosen).reshape(-1, 3)
+    return out
 
 
 # ---------------------------------------------------------------------------- label maps of both bones
@@ -896,6 +930,7 @@ def _build(case: str, seed: int, overrides: dict):
     if unknown:
         raise ValueError(f"Unknown phantom parameter(s): {', '.join(sorted(unknown))}")
     cfg.update(overrides)
+    cfg["_seed"] = int(seed)
     rng = np.random.default_rng(seed)
     # A second stream for the later options (vary_geometry, cortex_holes): the old cases'
     # main stream stays as it was.

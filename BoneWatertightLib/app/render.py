@@ -574,9 +574,10 @@ def render_surface(surface: Surface, path, ct=None, title: Optional[str] = None,
     title : str, optional
         First words of the title line (e.g. the segment name).
     scalars : "auto", str, (n_vertices,) array or None
-        Per-vertex values (mm) to colour the views by, with a colour bar: ``"auto"`` uses
-        "DistanceToConstraints" when the surface has it, a string names a point-data array,
-        ``None`` draws plain bone colour.
+        Per-vertex values to colour the views by, with a colour bar: ``"auto"`` uses
+        "Confidence" (0-1, the CT's support under each vertex) when the surface has it, else
+        "DistanceToConstraints" (mm); a string names a point-data array, ``None`` draws
+        plain bone colour.
     scalar_label : str, optional
         Colour-bar title.
     scalar_range : (min, max), optional
@@ -603,6 +604,11 @@ def render_surface(surface: Surface, path, ct=None, title: Optional[str] = None,
     from vtk.util import numpy_support as ns
 
     surface = _as_lps(surface)
+    if isinstance(scalars, str) and scalars == "auto" and "Confidence" in surface.point_data:
+        # How much CT evidence stands under each vertex (stages.evidence), on its own 0-1 scale.
+        scalars = "Confidence"
+        scalar_label = scalar_label or "CT support (confidence)"
+        scalar_range = scalar_range or (0.0, 1.0)
     values = _resolve_scalars(surface, scalars)
     lut = None
     if values is not None:

@@ -235,7 +235,7 @@ def _triangulate_contours(points2d: np.ndarray, loops: list):
 
 
 def cap_plane(vertices: np.ndarray, faces: np.ndarray, flags: np.ndarray, axis: int, side: int,
-              position: float, edge_length: float):
+              position: float, edge_length: float, fallbacks=None):
     """Clip a closed surface at an axis-aligned plane and close the cut with a flat cap.
 
     Parameters
@@ -252,6 +252,9 @@ def cap_plane(vertices: np.ndarray, faces: np.ndarray, flags: np.ndarray, axis: 
     position : float
     edge_length : float
         Mean edge length of the surface (snap distance and cap point spacing).
+    fallbacks : BoneWatertightLib.report.FallbackLog, optional
+        Notes a cut made again with a smaller snap distance, and a cap closed by VTK's
+        contour triangulator.
 
     Returns
     -------
@@ -260,7 +263,13 @@ def cap_plane(vertices: np.ndarray, faces: np.ndarray, flags: np.ndarray, axis: 
     """
     uv = [a for a in range(3) if a != axis]
     error = None
-    for fraction in SNAP_FRACTIONS:
+    where = f"plane {'ijk'[axis]} {'low' if side < 0 else 'high'}"
+
+    def note(what, count, unit):
+        if fallbacks is not None:
+            fallbacks.add("cap", what, count, unit, where)
+
+    for attempt, fraction in enumerate(SNAP_FRACTIONS):
         v, f, fl, loop_edges = clip_by_plane(vertices, faces, flags, axis, side, position,
                                              fraction * edge_length)
         if len(loop_edges) == 0:
@@ -275,11 +284,19 @@ def cap_plane(vertices: np.ndarray, faces: np.ndarray, flags: np.ndarray, axis: 
                 raise CapError("The outline where the bone leaves the image crosses itself.")
             try:
                 extra, tri = triangulate_region(p2, lloops, edge_length)
+                contours = False
             except CapError:
                 extra, tri = _triangulate_contours(p2, lloops)
+                contours = True
             capped = _close(v, f, fl, ids, extra, tri, axis, side, position, uv)
             if _crosses_near_plane(capped[0], capped[1], axis, position, edge_length):
                 raise CapError("The cap at the image boundary would cross the surface there.")
+            if contours:
+                note("the lattice triangulation lost a cut edge: VTK's contour triangulator "
+                     "(no interior points) closed the cap", len(tri), "faces")
+            if attempt:
+                note(f"cut again with a smaller snap distance ({fraction:g} x the edge length) "
+                     f"after: {error}", attempt, "retries")
             return capped
         except CapError as exc:
             error = exc

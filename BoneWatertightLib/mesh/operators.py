@@ -169,7 +169,8 @@ def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int
     return new, False, bad_faces
 
 
-def solve_spd(A, rhs: np.ndarray, x0: np.ndarray) -> np.ndarray:
+def solve_spd(A, rhs: np.ndarray, x0: np.ndarray, fallbacks=None,
+              stage: str = "solver") -> np.ndarray:
     """Solve A X = rhs for a symmetric positive definite A, one CG solve per coordinate.
 
     Jacobi-preconditioned and warm-started from ``x0``.
@@ -178,6 +179,9 @@ def solve_spd(A, rhs: np.ndarray, x0: np.ndarray) -> np.ndarray:
     ----------
     A : (n, n) sparse matrix, symmetric positive definite
     rhs, x0 : (n, 3) float64 arrays
+    fallbacks : BoneWatertightLib.report.FallbackLog, optional
+        Notes each solve that stopped short of CG_RTOL (its last iterate is used), under
+        ``stage``.
 
     Returns
     -------
@@ -185,9 +189,15 @@ def solve_spd(A, rhs: np.ndarray, x0: np.ndarray) -> np.ndarray:
     """
     precond = sp.diags(1.0 / A.diagonal())
     out = np.empty_like(x0)
+    short = 0
     for c in range(3):
-        out[:, c], _ = cg(A, rhs[:, c], x0=x0[:, c], rtol=CG_RTOL, maxiter=CG_MAX_ITERATIONS,
-                          M=precond)
+        out[:, c], info = cg(A, rhs[:, c], x0=x0[:, c], rtol=CG_RTOL,
+                             maxiter=CG_MAX_ITERATIONS, M=precond)
+        short += info != 0
+    if short and fallbacks is not None:
+        fallbacks.add(stage, f"conjugate gradient stopped short of its tolerance {CG_RTOL:g} "
+                      f"(at most {CG_MAX_ITERATIONS} iterations): its last iterate was used",
+                      short, "solves")
     return out
 
 

@@ -45,7 +45,7 @@ DEFAULT_SOFT_TISSUE = 40.0
 
 
 def tissue_levels(ct: np.ndarray, inside: np.ndarray, labelled: np.ndarray,
-                  spacing_xyz, coarseness: float) -> tuple:
+                  spacing_xyz, coarseness: float, fallbacks=None) -> tuple:
     """(soft-tissue HU, cortical HU) on the CT's own grid.
 
     Parameters
@@ -59,7 +59,14 @@ def tissue_levels(ct: np.ndarray, inside: np.ndarray, labelled: np.ndarray,
         The CT's spacing (x, y, z) in mm.
     coarseness : float
         The segmentation's coarseness (mm).
+    fallbacks : BoneWatertightLib.report.FallbackLog, optional
+        Notes a level measured on a wider region, or not measured at all (the default).
     """
+
+    def note(what, count):
+        if fallbacks is not None:
+            fallbacks.add("thresholds", what, count, "voxels")
+
     sampling = tuple(float(v) for v in spacing_xyz[::-1])
     d_in = distance_inside(np.pad(inside, 1), sampling)[1:-1, 1:-1, 1:-1]
     d_out = distance_outside(inside, sampling)
@@ -70,12 +77,20 @@ def tissue_levels(ct: np.ndarray, inside: np.ndarray, labelled: np.ndarray,
     s = ct[shell]
     s = s[(s >= lo) & (s <= hi)]
     if s.size < MIN_SHELL_VOXELS:
+        note(f"soft tissue: fewer than {MIN_SHELL_VOXELS} voxels in the shell around the "
+             f"segments; measured within {2 * SHELL_MM:g} mm of them, labelled voxels included",
+             s.size)
         s = ct[~inside & (d_out <= 2 * SHELL_MM)]
         s = s[(s >= lo) & (s <= hi)]
     soft = float(np.median(s)) if s.size >= MIN_SHELL_VOXELS else DEFAULT_SOFT_TISSUE
+    if s.size < MIN_SHELL_VOXELS:
+        note(f"soft tissue: too few voxels in the window there too; the default "
+             f"{DEFAULT_SOFT_TISSUE:g} HU is used", s.size)
     v = ct[band]
     v = v[(v >= soft + BONE_ABOVE_SOFT) & (v < METAL_HU)]
     if v.size < MIN_SHELL_VOXELS:
+        note(f"cortex: fewer than {MIN_SHELL_VOXELS} bone-like voxels at the segments' border; "
+             "measured on every voxel of the segments", v.size)
         v = ct[inside]
     cortex = float(np.percentile(v, CORTEX_PERCENTILE))
     return soft, cortex
@@ -97,14 +112,15 @@ def thresholds_from_levels(soft: float, cortex: float, theta_max: float) -> dict
 
 
 def auto_thresholds(ct: np.ndarray, labels: np.ndarray, targets, spacing_xyz, coarseness: float,
-                    theta_max: float = 2500.0) -> dict:
+                    theta_max: float = 2500.0, fallbacks=None) -> dict:
     """Thresholds for the targets of a label map (arrays on the CT's own grid, (z, y, x)).
 
-    ``targets``: label values. Returns {"h0", "ht", "soft_tissue", "cortex"} in HU."""
+    ``targets``: label values. Returns {"h0", "ht", "soft_tissue", "cortex"} in HU;
+    ``fallbacks`` (a FallbackLog) notes tissue levels that were not measured as usual."""
     inside = np.isin(labels, list(targets))
     if not inside.any():
         raise EmptySegmentError("The segment is empty; thresholds cannot be proposed.")
-    soft, cortex = tissue_levels(ct, inside, labels > 0, spacing_xyz, coarseness)
+    soft, cortex = tissue_levels(ct, inside, labels > 0, spacing_xyz, coarseness, fallbacks)
     return thresholds_from_levels(soft, cortex, theta_max)
 
 

@@ -132,15 +132,17 @@ def _ring_patch(adjacency, seeds: np.ndarray, rings: int) -> np.ndarray:
 
 
 def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, gap: float,
-            rounds: int = ENFORCE_ROUNDS):
+            rounds: int = ENFORCE_ROUNDS, pinned: np.ndarray | None = None):
     """Move vertices with phi > -gap / 2 back along -grad phi; returns (vertices, number still
-    beyond, number moved).
+    beyond, number moved, number of moves discarded).
 
     Each round solves a regularised Laplacian system on the offending vertices and a few rings
     around them (the rest of the surface is fixed), so the neighbourhood follows smoothly; the
-    rounds are checked for flipped faces, the result once exactly for self-intersections."""
+    rounds are checked for flipped faces, the result once exactly for self-intersections.
+    When that check cannot be met the input is kept: every move is discarded (the fourth
+    value counts them). ``pinned`` ((n,) bool): vertices that never move (a cap's)."""
     if phi_entry is None:
-        return vertices, 0, 0
+        return vertices, 0, 0, 0
     from scipy.sparse.linalg import spsolve
 
     origin, phi = phi_entry
@@ -148,8 +150,9 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
     start = v.copy()
     target = -0.5 * gap - TARGET_MARGIN_VOXELS * spacing
     value = sample_field(phi, v, spacing, cval=-FAR)
-    if not (value > target).any():
-        return vertices, 0, 0
+    free = np.ones(len(v), bool) if pinned is None else ~np.asarray(pinned, bool)
+    if not ((value > target) & free).any():
+        return vertices, 0, 0, 0
     grads = [ndimage.sobel(phi, axis=a) / (8.0 * spacing) for a in (2, 1, 0)]
     L = laplacian(len(v), faces)
     LtL = (L.T @ L).tocsr()
@@ -158,7 +161,7 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
     stiffness = ENFORCE_SMOOTHNESS
     for r in range(rounds):
         value = sample_field(phi, v, spacing, cval=-FAR)
-        bad = value > target
+        bad = (value > target) & free
         if not bad.any():
             break
         moved |= bad
@@ -166,7 +169,7 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
         g /= np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-6)
         goal = v.copy()
         goal[bad] = v[bad] - (value[bad] - target + 0.1 * spacing)[:, None] * g
-        patch = _ring_patch(adjacency, bad, ENFORCE_RINGS)
+        patch = _ring_patch(adjacency, bad, ENFORCE_RINGS) & free
         idx = np.flatnonzero(patch)
         rest = np.flatnonzero(~patch)
         w = np.where(bad, 1.0, ENFORCE_FREE_WEIGHT)
@@ -186,14 +189,16 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
     # safe_update gives up after its rounds: then keep the verified input
     v = checked if ok else start
     beyond = int((sample_field(phi, v, spacing, cval=-FAR) > -0.5 * gap).sum())
-    return v + origin, beyond, int(moved.sum())
+    return v + origin, beyond, int(moved.sum()), 0 if ok else int(moved.sum())
 
 
 def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, min_gap: float,
-                     passes: int = CONTACT_PASSES, progress=None) -> list:
+                     passes: int = CONTACT_PASSES, progress=None,
+                     pinned: dict | None = None) -> list:
     """Keep the surfaces (dict key -> [vertices, faces], updated in place) apart by min_gap.
 
-    Returns one record per pass: {key: (moved, still beyond)}."""
+    ``pinned``: key -> (n,) bool of vertices that never move. Returns one record per pass:
+    {key: (moved, still beyond, moves discarded by the self-intersection check)}."""
     history = []
     for p in range(passes):
         phis = territories({k: (v, f) for k, (v, f) in surfaces.items()}, fixed, shape, spacing)
@@ -203,13 +208,14 @@ def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, 
                 continue
             v, f = surfaces[k]
             # half a voxel more: the fields are voxelised
-            v2, beyond, moved = enforce(v, f, entry, spacing, min_gap + 0.5 * spacing)
+            v2, beyond, moved, discarded = enforce(v, f, entry, spacing, min_gap + 0.5 * spacing,
+                                                   pinned=(pinned or {}).get(k))
             surfaces[k][0] = v2
-            record[k] = (moved, beyond)
+            record[k] = (moved, beyond, discarded)
         history.append(record)
         if progress:
             progress((p + 1) / passes, f"joint gaps, pass {p + 1}")
-        if all(b == 0 for _, b in record.values()):
+        if all(rec[1] == 0 for rec in record.values()):
             break
     return history
 

@@ -71,11 +71,14 @@ class Deformer:
         Start weights of the smoothness and the step-damping (previous-iterate) terms.
     search_radius, search_offset : float
         Radius and centre offset |delta| of the directional search, in units of d*.
+    fallbacks : BoneWatertightLib.report.FallbackLog, optional
+        Notes the steps redone stiffer, a rejected iteration, the fall-back to the last
+        verified iterate and CG solves stopped short.
     """
 
     def __init__(self, vertices, faces, constraints, inside, edge_length: float, *,
                  iterations: int = 8, alpha: float = 1.0, beta: float = 1.0,
-                 search_radius: float = 1.5, search_offset: float = 0.75):
+                 search_radius: float = 1.5, search_offset: float = 0.75, fallbacks=None):
         self.v = np.array(vertices, dtype=np.float64)
         self.f = np.asarray(faces)
         self.tree = cKDTree(constraints)
@@ -93,6 +96,11 @@ class Deformer:
         self.avg = (sp.identity(n, format="csr") - L).tocsr()  # D^-1 A: 1-ring mean
         self.history = []
         self.last_step: dict = {}
+        self.fallbacks = fallbacks
+
+    def _note(self, what, count, unit, where=""):
+        if self.fallbacks is not None and count:
+            self.fallbacks.add("deform", what, count, unit, where)
 
     def match(self, v, normals):
         inside = self.inside(v)
@@ -129,7 +137,7 @@ class Deformer:
 
     def solve(self, rhs, diag_extra, alpha, beta, x0):
         A = (alpha * self.LtL + sp.diags(diag_extra + beta)).tocsr()
-        return solve_spd(A, rhs, x0)
+        return solve_spd(A, rhs, x0, self.fallbacks, "deform")
 
     def step(self, j, total, alpha, beta, full_check=True, stationary=None, stable=False):
         """One iteration j of ``total``: ``(new vertices, matched, 0)``, or ``(None, matched,
@@ -158,6 +166,8 @@ class Deformer:
                 if ok:
                     self.clean_v = new
             if ok:
+                self._note("a step that flipped triangles was redone stiffer (beta doubled)",
+                           attempt, "retries")
                 return new, matched, 0
             # Global back-off: a stiffer step (more weight on the previous iterate).
             rhs = rhs + beta * v
@@ -182,6 +192,9 @@ class Deformer:
             if new is None:
                 self.history.append({"iteration": j, "rejected": True, "flipped": flipped,
                                      **self.last_step})
+                self._note(f"iteration {j} still flipped triangles after {STEP_ATTEMPTS} "
+                           "stiffer attempts: the deformation stopped at the iterate before it",
+                           flipped, "faces")
                 break
             move = np.linalg.norm(new - self.v, axis=1)
             self.v = new
@@ -203,7 +216,11 @@ class Deformer:
                 extra += 1
             j += 1
         if not np.array_equal(self.clean_v, self.v):
+            last = self.v
             self.v, ok, _ = safe_update(self.clean_v, self.v, self.f)
             if not ok:
+                self._note("the last iterates failed the self-intersection check: fell back "
+                           "to the last verified iterate",
+                           int(np.any(last != self.clean_v, axis=1).sum()), "vertices")
                 self.v = self.clean_v
         return self.v

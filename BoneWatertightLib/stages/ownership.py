@@ -7,7 +7,9 @@ label is a bone: the targets and their neighbours). Axis order (z, y, x) through
    (hysteresis), voxels inside a label down to a lower level ``t_low`` (partial volume lowers
    thin cortex and processes, and the segment already says bone is there), and the **cores**:
    what a segment clearly covers (deeper than ``r_core`` inside it) is bone whatever its HU -
-   the trabecular body of a vertebra on 3 mm CT lies far below H0.
+   the trabecular body of a vertebra on 3 mm CT lies far below H0 - unless the CT is
+   unambiguous: a soft-tissue part of the label with soft tissue all around it (a false blob
+   stuck to the bone) is no core (:func:`unsupported_parts`; reported per label).
 2. **Markers**: each label's voxels in [H0, theta_max] and its core, except in the **joint
    zone** (its voxels within ``r_contact`` of another label), where labels are not trusted (AI
    masks are often wrong by a few mm at a joint); and "other bone": H0 voxels outside every
@@ -68,6 +70,13 @@ FRAGMENT_IN_LABEL_FRACTION = 0.5
 # band (labelled neighbours compete by their labels, so a small bone needs no smaller band).
 REGION_CLOSE_MM = 10.0
 REGION_CLOSE_FRACTION = 0.15
+# The CT outranks the segment where it is unambiguous: a part of a label whose CT is soft
+# tissue (below the label level after smoothing by SUPPORT_SMOOTH_MM) and which reaches the
+# label's core is bone only when at least SUPPORT_MIN_FRACTION of its surroundings is not soft
+# tissue (a marrow cavity or a low-density body inside its cortex: most of it; a false blob of
+# the segment stuck to the bone from the soft tissue: only the contact).
+SUPPORT_SMOOTH_MM = 1.0
+SUPPORT_MIN_FRACTION = 0.5
 
 
 @dataclass
@@ -87,6 +96,61 @@ class Ownership:
     other: int
     contacts: list = field(default_factory=list)
     info: dict = field(default_factory=dict)
+    unsupported: np.ndarray = None
+
+
+def unsupported_parts(ct: np.ndarray, label: np.ndarray, core: np.ndarray, spacing: float, *,
+                      level: float, smooth_mm: float = SUPPORT_SMOOTH_MM,
+                      min_fraction: float = SUPPORT_MIN_FRACTION) -> tuple:
+    """Parts of a label that the CT shows to be soft tissue outside the bone.
+
+    A connected part of the label whose smoothed CT is below ``level`` and which reaches the
+    label's core is *supported* when at least ``min_fraction`` of the voxels around it (its
+    6-connected outer shell) are not soft tissue - bone or the soft-tissue-free inside of a
+    cortex - and *unsupported* otherwise: then the segment says bone where the CT shows soft
+    tissue with no bone around it (a false blob of an AI or hand segmentation).
+
+    Parameters
+    ----------
+    ct : (z, y, x) float array
+        The filtered CT (HU) on the label's box.
+    label, core : (z, y, x) bool arrays
+        The label and its core on the same box.
+    spacing : float
+        Voxel size in mm.
+    level : float
+        Soft tissue is below this (HU): the label level of the bone evidence.
+    smooth_mm, min_fraction : float
+        See SUPPORT_SMOOTH_MM, SUPPORT_MIN_FRACTION.
+
+    Returns
+    -------
+    mask : (z, y, x) bool array
+        The unsupported parts (within the label).
+    pieces : list of dict
+        Per unsupported part: ``voxels`` and ``support`` (the fraction of its shell that is
+        not soft tissue).
+    """
+    soft = ndimage.gaussian_filter(ct.astype(np.float32), sigma=max(smooth_mm / spacing, 0.5),
+                                   mode="nearest") < level
+    cand = label & soft
+    if not (cand & core).any():
+        return np.zeros(label.shape, bool), []
+    parts, n = ndimage.label(cand, structure=SIX)
+    reach = np.unique(parts[cand & core])
+    reach = reach[reach > 0]
+    # Each shell voxel (not in any part, 6-adjacent to one) counts for the part it touches.
+    shell_of = ndimage.maximum_filter(parts, footprint=SIX, mode="constant", cval=0)
+    shell = (parts == 0) & (shell_of > 0)
+    total = np.bincount(shell_of[shell], minlength=n + 1)
+    bone = np.bincount(shell_of[shell & ~soft], minlength=n + 1)
+    support = bone / np.maximum(total, 1)
+    bad = np.zeros(n + 1, bool)
+    bad[reach] = support[reach] < min_fraction
+    size = np.bincount(parts.ravel(), minlength=n + 1)
+    pieces = [{"voxels": int(size[i]), "support": round(float(support[i]), 3)}
+              for i in np.flatnonzero(bad)]
+    return bad[parts], pieces
 
 
 def valley_map(ct: np.ndarray, spacing: float, radius_mm: float) -> np.ndarray:
@@ -230,6 +294,9 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     union = np.zeros(shape, bool)
     core_depth = {}
     present = [i for i in range(1, n + 1)]
+    t_low = soft + LABEL_LEVEL_FRACTION * (ht - soft)
+    unsupported = np.zeros(shape, bool)
+    unsupported_info = {}
     for step, i in enumerate(present):
         m = labels == i
         if not m.any():
@@ -239,6 +306,12 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         depth = distance_inside(np.pad(sub, 1))[1:-1, 1:-1, 1:-1] * spacing
         r = min(r_core, CORE_MAX_DEPTH_FRACTION * float(depth.max()))
         core = depth > r if (depth > r).any() else depth >= depth.max()
+        # The CT outranks the segment: a soft-tissue part of it with no bone around is no core.
+        bad, pieces = unsupported_parts(ct[sl], sub, core, spacing, level=t_low)
+        if pieces:
+            core &= ~bad
+            unsupported[sl] |= bad
+            unsupported_info[i] = pieces
         cores[sl][core] = i
         core_depth[i] = r
         ext = [np.nonzero(sub.any(axis=tuple(a for a in range(3) if a != ax)))[0] for ax in range(3)]
@@ -253,7 +326,6 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             contact[sl] |= sub & (d_other <= r_contact)
         if progress:
             progress(0.4 * (step + 1) / len(present), "segment regions")
-    t_low = soft + LABEL_LEVEL_FRACTION * (ht - soft)
     in_window = ((ct >= ht) | (labelled & (ct >= t_low))) & (ct <= theta_max)
     strong = (ct >= h0) & (ct <= theta_max)
     lab, nl = ndimage.label(in_window, structure=SIX)
@@ -365,9 +437,10 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             "contact_zone_mm": r_contact, "valley_quantum_hu": quantum, "label_level_hu": t_low,
             "foreground_voxels": int(fg.sum()), "unlabelled_pieces": n_pieces,
             "joint_space_voxels": int(joint_space.sum()),
+            "unsupported": {int(k): v for k, v in unsupported_info.items()},
             "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
                                    "contact_mm2": round(s, 1)} for p, a, f, s in merged]}
     if progress:
         progress(1.0, "ownership done")
     return Ownership(owner=owner, cores=cores, regions=regions, foreground=fg, other=other,
-                     contacts=contacts, info=info)
+                     contacts=contacts, info=info, unsupported=unsupported)

@@ -81,6 +81,8 @@ class Plausibility:
     edge_support: float = 1.0
     untouched_segment_ml: float = 0.0
     untouched_bone_ml: float = 0.0
+    unsupported_segment_ml: float = 0.0
+    unsupported_pieces: int = 0
     segment_genus: int | None = None
     bounds: dict = field(default_factory=dict)
     problems: list = field(default_factory=list)
@@ -94,7 +96,8 @@ class Plausibility:
 def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbours: np.ndarray,
             neighbour_cores: np.ndarray, in_image: np.ndarray, spacing: float, *,
             volume_mm3: float, coarseness: float, band_mm: float,
-            edge_support: float, owned: np.ndarray | None = None) -> Plausibility:
+            edge_support: float, owned: np.ndarray | None = None,
+            unsupported: np.ndarray | None = None, unsupported_pieces: int = 0) -> Plausibility:
     """Compare a surface with its segment on a box of the working grid.
 
     Parameters
@@ -116,7 +119,16 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     owned : (z, y, x) bool array, optional
         The bone evidence this bone owns: an untouched piece of the segment that is mostly
         owned bone is a left-out piece of the bone, not an island.
+    unsupported : (z, y, x) bool array, optional
+        Parts of the segment that the CT shows to be soft tissue (left out of the bone by
+        :func:`.ownership.unsupported_parts`): not counted as missing, reported in ml with
+        ``unsupported_pieces`` (their number).
     """
+    unsupported_ml = 0.0
+    if unsupported is not None:
+        unsupported = unsupported & label & in_image
+        unsupported_ml = float(unsupported.sum() * spacing ** 3 / 1000.0)
+        label = label & ~unsupported
     label = label & in_image
     # Bounds of a few mm need no sub-millimetre grid: measure on blocks of about 1 mm.
     f = max(1, int(round(COARSE_MM / spacing)))
@@ -170,7 +182,8 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         neighbour_core_overlap=float((inside & neighbour_cores).sum() / max(in_n, 1)),
         edge_support=float(edge_support),
         untouched_segment_ml=float(islands.sum() * voxel / 1000.0),
-        untouched_bone_ml=float(left_out.sum() * voxel / 1000.0))
+        untouched_bone_ml=float(left_out.sum() * voxel / 1000.0),
+        unsupported_segment_ml=unsupported_ml, unsupported_pieces=int(unsupported_pieces))
     return p
 
 
@@ -258,15 +271,10 @@ def segment_genus(label: np.ndarray, spacing: float) -> int:
     """Genus of the largest closed surface of a binary segment (z, y, x) at the 0.5 level
     (flying edges): its tunnels, e.g. 1 for a vertebra's canal or a hip bone's obturator
     foramen."""
-    from .poisson import contour
+    from .poisson import contour, surface_genus
 
-    surf = contour(np.pad(label, 1).astype(np.float32), (0.0, 0.0, 0.0), spacing, 0.5,
-                   smooth_iterations=0)
-    f = surf.faces
-    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    n_edges = len(np.unique(edges, axis=0))
-    chi = surf.n_vertices - n_edges + len(f)
-    return max(0, (2 - chi) // 2)
+    return surface_genus(contour(np.pad(label, 1).astype(np.float32), (0.0, 0.0, 0.0), spacing,
+                                 0.5, smooth_iterations=0, relax=False))
 
 
 def tunnel_warning(name: str, surface_genus: int, segment_genus: int) -> list:

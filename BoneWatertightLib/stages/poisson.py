@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 from scipy import ndimage
@@ -34,6 +36,10 @@ REMESH_SMOOTH_SIGMA = 0.8
 # Windowed-sinc relaxation of the contour.
 SINC_ITERATIONS = 15
 SINC_PASS_BAND = 0.1
+# Filling tunnels the segment does not have (see _fill_tunnels): at most FILL_MAX_TRIALS
+# contours per surface; plugs of at least FILL_MIN_VOXELS grid voxels.
+FILL_MAX_TRIALS = 8
+FILL_MIN_VOXELS = 8
 # Fewest triangles of a remeshed M0 (a tetrahedron); fewer: the surface was lost.
 MIN_REMESH_FACES = 4
 
@@ -140,14 +146,84 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int) -> Surf
     return Surface(verts[used], inv.reshape(-1, 3))
 
 
-def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_ITERATIONS) -> Surface:
-    """Closed, manifold, near-uniform remesh of a (roughly closed) surface through a voxel grid."""
+@dataclass
+class Fusion:
+    """Evidence joined to the Poisson surface when it is remeshed (:func:`remesh`).
+
+    ``plates``: optional callable field(shape, origin, h) -> (z, y, x) float32 in [0, 1] (thin
+    plates as slabs, :meth:`.plates.Plates.field`) with ``plates_box`` (lo, hi) x-y-z of what
+    it covers. ``label``: optional (z, y, x) bool segment on a grid of step ``label_spacing``
+    whose voxel (0, 0, 0) is at ``label_origin`` (x-y-z, the points' frame), with its
+    ``genus``: where the surface has more tunnels than the segment, the segment fills them
+    (:func:`_fill_tunnels`: a label-restricted closing by ``close_mm[0]``, then plugs of
+    holes, :func:`_plugs`, reaching ``close_mm[0]`` to both sides).
+    ``info`` is filled with what was done.
+    """
+
+    plates: object = None
+    plates_box: tuple = None
+    label: np.ndarray = None
+    label_origin: np.ndarray = None
+    label_spacing: float = 0.0
+    genus: Optional[int] = None
+    close_mm: tuple = ()
+    info: dict = field(default_factory=dict)
+    fill_mask: tuple = None  # (voxels the segment filled (z, y, x) bool, origin, step)
+
+
+def surface_genus(surface: Surface) -> int:
+    """(2 - chi) / 2 of a closed surface (V - E + F), not checked for manifoldness."""
+    f = np.asarray(surface.faces, np.int64)
+    if not len(f):
+        return 0
+    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    n_edges = len(np.unique(edges[:, 0] * (int(f.max()) + 1) + edges[:, 1]))
+    chi = len(np.unique(f)) - n_edges + len(f)
+    return max(0, (2 - chi) // 2)
+
+
+def _label_on(fusion: Fusion, shape: tuple, lo: np.ndarray, h: float) -> np.ndarray:
+    """The fusion's label, nearest-neighbour on the remeshing grid (z, y, x)."""
+    axes = []
+    for a, n in zip(range(3), shape[::-1]):
+        q = np.rint((lo[a] + h * np.arange(n) - fusion.label_origin[a]) / fusion.label_spacing)
+        axes.append(q.astype(np.int64))
+    lab = fusion.label
+    valid = [(q >= 0) & (q < lab.shape[2 - a]) for a, q in enumerate(axes)]
+    idx = [np.clip(q, 0, lab.shape[2 - a] - 1) for a, q in enumerate(axes)]
+    out = lab[np.ix_(idx[2], idx[1], idx[0])]
+    return out & valid[2][:, None, None] & valid[1][None, :, None] & valid[0][None, None, :]
+
+
+def _close_with_label(field_zyx: np.ndarray, label: np.ndarray, h: float,
+                      radius_mm: float) -> np.ndarray:
+    """Voxels of ``label`` that a closing of the occupancy (field >= 0.5) by a ball of
+    ``radius_mm`` adds: holes the segment does not have, bridged where the segment is."""
+    from ..mesh.distance import distance_inside, distance_outside
+
+    occ = field_zyx >= 0.5
+    grown = distance_outside(occ, h) <= radius_mm
+    closed = distance_inside(grown, h) > radius_mm
+    return closed & label & ~occ
+
+
+def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_ITERATIONS,
+           fusion: Optional[Fusion] = None) -> Surface:
+    """Closed, manifold, near-uniform remesh of a (roughly closed) surface through a voxel grid.
+
+    ``fusion``: evidence joined to the surface's (smoothed) occupancy by the maximum before
+    contouring (thin plates; the segment where the surface has tunnels it does not have)."""
     import vtk
     from vtk.util import numpy_support as ns
 
     h = edge_length / REMESH_EDGE_RATIO
-    lo = surface.vertices.min(axis=0) - REMESH_PAD_STEPS * h
-    hi = surface.vertices.max(axis=0) + REMESH_PAD_STEPS * h
+    lo = surface.vertices.min(axis=0)
+    hi = surface.vertices.max(axis=0)
+    if fusion is not None and fusion.plates is not None:
+        lo = np.minimum(lo, fusion.plates_box[0])
+        hi = np.maximum(hi, fusion.plates_box[1])
+    lo = lo - REMESH_PAD_STEPS * h
+    hi = hi + REMESH_PAD_STEPS * h
     dims = np.ceil((hi - lo) / h).astype(int) + 1
     image = vtk.vtkImageData()
     image.SetOrigin(*lo)
@@ -178,7 +254,12 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         occ = lab == int(np.argmax(sizes))
     occ = ndimage.binary_fill_holes(occ)
     field = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
+    if fusion is not None and fusion.plates is not None:
+        np.maximum(field, fusion.plates(field.shape, lo, h), out=field)
     out = contour(field, lo, h, 0.5, smooth_iterations) if field.max() > 0.5 else None
+    if out is not None and fusion is not None and fusion.label is not None \
+            and fusion.genus is not None:
+        out = _fill_tunnels(out, field, lo, h, fusion, smooth_iterations)
     if out is None or out.n_faces < MIN_REMESH_FACES:
         # A Poisson surface only a few grid steps across smooths away below the 0.5 level.
         raise ReconstructionError(
@@ -188,8 +269,97 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
     return out
 
 
+def _plugs(field_zyx: np.ndarray, label: np.ndarray, h: float, reach_mm: float):
+    """Pieces of the segment outside the occupancy (field >= 0.5) with no occupancy on
+    either side along the segment's normal within ``reach_mm``: plugs of holes in a thin plate
+    (the segment's margin beside the surface has the surface on its inner side). Returns the
+    labelled pieces (z, y, x) and their sizes (voxels, index 0 unused)."""
+    cand = label & (field_zyx < 0.5)
+    idx = np.argwhere(cand)
+    if not len(idx):
+        return np.zeros(label.shape, np.int32), np.zeros(1, np.int64)
+    sm = ndimage.gaussian_filter(label.astype(np.float32), sigma=max(0.5 * reach_mm / h, 1.0))
+    # The segment's outward normal (z, y, x): down its smoothed indicator's gradient.
+    n = -np.stack([ndimage.sobel(sm, axis=a)[tuple(idx.T)] for a in range(3)], axis=1)
+    length = np.linalg.norm(n, axis=1)
+    free = length > 1e-6
+    n[free] /= length[free, None]
+    for side in (-1.0, 1.0):
+        q = idx + side * (reach_mm / h) * n
+        free &= ndimage.map_coordinates(field_zyx, q.T, order=1, mode="constant", cval=0.0) < 0.5
+    plug = np.zeros(label.shape, bool)
+    plug[tuple(idx[free].T)] = True
+    pieces, count = ndimage.label(plug, structure=np.ones((3, 3, 3), bool))
+    size = np.bincount(pieces.ravel(), minlength=count + 1)
+    size[0] = 0
+    return pieces, size
+
+
+def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fusion,
+                  smooth_iterations: int) -> Surface:
+    """Where the contour has more tunnels than the segment, close them with the segment.
+
+    1. A label-restricted closing of the occupancy by ``fusion.close_mm[0]`` (small handles
+       and gaps), kept if it lowers the genus.
+    2. Plugs (:func:`_plugs`: the segment where a thin plate of the surface has a hole),
+       tried one by one, largest first, each grown two steps into the segment (to meet the
+       hole's rim) and kept when it lowers the genus - a plug of a hole does; a flap of the
+       segment beside the bone does not, and stays out.
+    At most FILL_MAX_TRIALS contours; what was done is recorded in ``fusion.info``."""
+    genus = surface_genus(out)
+    fusion.info.update(genus_before=int(genus), segment_genus=int(fusion.genus),
+                       label_fill_voxels=0, label_fill_mm3=0.0, plugs=0, fill_trials=0)
+    if genus <= fusion.genus:
+        fusion.info["genus_after"] = int(genus)
+        return out
+    lo = np.asarray(lo, np.float64)
+    label = _label_on(fusion, field_zyx.shape, lo, h)
+    filled = np.zeros(field_zyx.shape, bool)
+    trials = 0
+
+    def attempt(add, soft):
+        nonlocal trials, out, genus, field_zyx
+        trials += 1
+        trial = field_zyx.copy()
+        if soft:
+            ramp = ndimage.gaussian_filter(add.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
+            np.maximum(trial, np.minimum(1.0, 2.0 * ramp), out=trial)
+        else:
+            trial[add] = 1.0
+        # the genus of the raw contour: smoothing and relaxing do not change it
+        g = surface_genus(contour(trial, lo, h, 0.5, 0, relax=False))
+        if g < genus:
+            genus, field_zyx = g, trial
+            filled[add] = True
+            return True
+        return False
+
+    reach = fusion.close_mm[0] if fusion.close_mm else 2.0 * h
+    if fusion.close_mm:
+        add = _close_with_label(field_zyx, label, h, fusion.close_mm[0])
+        if add.any():
+            attempt(add, soft=False)
+    if genus > fusion.genus:
+        pieces, size = _plugs(field_zyx, label, h, reach)
+        for p in np.argsort(size)[::-1]:
+            if size[p] < FILL_MIN_VOXELS or trials >= FILL_MAX_TRIALS or genus <= fusion.genus:
+                break
+            grown = ndimage.binary_dilation(pieces == p, structure=np.ones((3, 3, 3), bool),
+                                            iterations=2) & label
+            if attempt(grown, soft=True):
+                fusion.info["plugs"] += 1
+    if filled.any():
+        out = contour(field_zyx, lo, h, 0.5, smooth_iterations)
+        fusion.info.update(label_fill_voxels=int(filled.sum()),
+                           label_fill_mm3=float(filled.sum() * h ** 3))
+        fusion.fill_mask = (filled, lo, h)
+    fusion.info["genus_after"] = int(genus)
+    fusion.info["fill_trials"] = int(trials)
+    return out
+
+
 def contour(field_zyx: np.ndarray, origin, h: float, level: float,
-            smooth_iterations: int = SINC_ITERATIONS) -> Surface:
+            smooth_iterations: int = SINC_ITERATIONS, relax: bool = True) -> Surface:
     """Largest closed isosurface of a scalar field.
 
     Parameters
@@ -202,6 +372,8 @@ def contour(field_zyx: np.ndarray, origin, h: float, level: float,
         Iso-value.
     smooth_iterations : int
         Windowed-sinc iterations (0: none).
+    relax : bool
+        Tangential relaxation of the vertices (near-uniform edges).
     """
     import vtk
     from vtk.util import numpy_support as ns
@@ -239,7 +411,8 @@ def contour(field_zyx: np.ndarray, origin, h: float, level: float,
     last.Update()
     surf = from_polydata(last.GetOutput())
     surf = drop_degenerate(surf)
-    surf.vertices = tangential_relax(surf.vertices, surf.faces)
+    if relax:
+        surf.vertices = tangential_relax(surf.vertices, surf.faces)
     if enclosed_volume(surf.vertices, surf.faces) < 0:
         surf.faces = surf.faces[:, ::-1].copy()
     return surf
@@ -257,7 +430,7 @@ def drop_degenerate(surface: Surface) -> Surface:
 
 
 def initial_surface(points: np.ndarray, normals: np.ndarray, depth: int,
-                    edge_length: float) -> tuple[Surface, Surface]:
+                    edge_length: float, fusion: Optional[Fusion] = None) -> tuple[Surface, Surface]:
     """M0: Poisson on the oriented visible points, remeshed closed and near-uniform.
 
     Parameters
@@ -268,11 +441,13 @@ def initial_surface(points: np.ndarray, normals: np.ndarray, depth: int,
         Poisson octree depth.
     edge_length : float
         Target mean edge length d* in mm.
+    fusion : Fusion, optional
+        Evidence joined to the Poisson surface when it is remeshed (see :func:`remesh`).
 
     Returns
     -------
     (M0, raw Poisson surface), both in grid millimetres
     """
     raw = poisson_surface(points, normals, depth)
-    return remesh(raw, edge_length), raw
+    return remesh(raw, edge_length, fusion=fusion), raw
 

@@ -109,7 +109,8 @@ def contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast=MIN
 def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
                     max_shift=MAX_SHIFT_MM, min_contrast=MIN_CONTRAST_HU,
                     smoothness=REFINE_ALPHA, damping=REFINE_BETA, passes=REFINE_PASSES,
-                    allowed=None, progress=None):
+                    allowed=None, progress=None, plate_targets=None,
+                    fallbacks=None):
     """Move each vertex along its normal to the CT profile's edge at ``edge_level``.
 
     Repeats :func:`refine_pass` (vertices held back by the back-off get another chance once
@@ -138,6 +139,13 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         not); targets elsewhere are dropped.
     progress : callable, optional
         progress(fraction, message) after each pass.
+    plate_targets : callable, optional
+        (vertices (n, 3), normals (n, 3)) -> (n,) shift along the normal (mm) onto a thin
+        plate's face, NaN where none (:meth:`.plates.Plates.targets`): the target of the
+        vertices whose profile shows no edge.
+    fallbacks : BoneWatertightLib.report.FallbackLog, optional
+        Notes every step that fell back (the automatic level, a pass or verification round
+        whose result was discarded, vertices held at their verified position).
 
     Returns
     -------
@@ -152,19 +160,30 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
     v = vertices
     frac = 0.0
     found = np.zeros(len(vertices), bool)
+
+    def note(what, count, unit, where=""):
+        if fallbacks is not None:
+            fallbacks.add("refine", what, count, unit, where)
+
     if edge_level is None:
         reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast)
         edge_level = 0.5 if not np.isfinite(reference) else ("slab", reference)
+        if edge_level == 0.5:
+            note("no profile has a cortical contrast for the automatic edge level: the half "
+                 "maximum (0.5) is used", 1, "")
     L = laplacian(len(vertices), faces)
     ops = ((L.T @ L).tocsr(), (sp.identity(len(vertices), format="csr") - L).tocsr())
     for i in range(passes):
         v, _, found, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
                                       smoothness, damping, ops=ops, edge_level=edge_level,
-                                      allowed=allowed)
+                                      allowed=allowed, plate_targets=plate_targets,
+                                      fallbacks=fallbacks)
         frac = float(found.mean())
         if progress:
             progress((i + 1) / (passes + VERIFY_ROUNDS), f"edge refinement {i + 1}/{passes}")
         if not ok:
+            note("the flip back-off gave up: the later passes were skipped", passes - 1 - i,
+                 "passes", f"pass {i + 1}")
             break
     # Passes check only for flips; the exact self-intersection test runs against the verified
     # input surface. Vertices it puts back get another pass (they would stand out as spikes
@@ -175,27 +194,85 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
             progress((passes + r) / (passes + VERIFY_ROUNDS), "edge refinement: verifying")
         checked, ok, _ = safe_update(clean, v, faces)
         if not ok:
+            note("the unrefined surface is kept: the refined one failed the self-intersection "
+                 "check" if r == 0 else "a re-refinement failed the self-intersection check: "
+                 "the surface verified before it is kept",
+                 int(np.any(v != clean, axis=1).sum()), "vertices", f"round {r + 1}")
             v = clean
             break
         reverted = np.any(checked != v, axis=1)
         clean = v = checked
         if not reverted.any():
             break
+        last_reverted = int(reverted.sum())
         v, _, _, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
                                   smoothness, damping, ops=ops, edge_level=edge_level,
-                                  allowed=allowed)
+                                  allowed=allowed, plate_targets=plate_targets,
+                                  fallbacks=fallbacks)
         if not ok:
+            note("the re-refinement of the vertices the check put back was reverted (the flip "
+                 "back-off gave up)", int(reverted.sum()), "vertices", f"round {r + 1}")
             v = clean
             break
     else:
+        note("vertices still put back by the self-intersection check after "
+             f"{VERIFY_ROUNDS} rounds keep their verified position (the last re-refinement is "
+             "not kept)", last_reverted, "vertices")
         v = clean
     n = vertex_normals(vertices, faces)
     return v, np.einsum("ij,ij->i", v - vertices, n), frac, found
 
 
+def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
+                   min_contrast=MIN_CONTRAST_HU):
+    """Where each vertex's CT profile crosses its edge level.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float array
+        x-y-z grid millimetres of a closed outward surface; ``faces`` (m, 3).
+    ct_smooth, spacing, ht, min_contrast
+        As :func:`refine_to_edges`.
+    edge_level : float or ("slab", full contrast in HU)
+        As :func:`refine_pass`.
+
+    Returns
+    -------
+    normals : (n, 3) float array
+    t_cross : (n,) float array
+        Signed distance (mm, along the normal, outward positive) from the vertex to the edge.
+    ok : (n,) bool array
+        Whether the profile has an edge (peak at least HT and ``min_contrast`` above the valley
+        outside it).
+    contrast : (n,) float array
+        Peak - valley (HU).
+    """
+    n, t, prof, i_peak, peak, valley, inner = _profiles(vertices, faces, ct_smooth, spacing)
+    cols = np.arange(len(t))[None, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        contrast = peak - valley
+        if isinstance(edge_level, tuple):
+            fraction = slab_edge_level(contrast / edge_level[1], (peak - inner) / contrast)
+        else:
+            fraction = edge_level
+    level = valley + fraction * (peak - valley)
+    below = (prof < level[:, None]) & (cols > i_peak[:, None])
+    first = np.argmax(below, axis=1)
+    rows = np.arange(len(prof))
+    has = below[rows, first]
+    k1 = np.maximum(first - 1, 0)
+    g0 = prof[rows, k1]
+    g1 = prof[rows, first]
+    frac = np.clip((g0 - level) / np.maximum(g0 - g1, 1e-6), 0.0, 1.0)
+    t_cross = t[k1] + frac * PROFILE_STEP_MM
+    ok = has & np.isfinite(valley) & (contrast >= min_contrast) & (peak >= ht)
+    return n, t_cross, ok, np.where(np.isfinite(contrast), contrast, 0.0)
+
+
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
                 min_contrast=MIN_CONTRAST_HU, smoothness=REFINE_ALPHA, damping=REFINE_BETA, ops=None,
-                edge_level=None, allowed=None):
+                edge_level=None, allowed=None, plate_targets=None,
+                fallbacks=None):
     """Return (new vertices, per-vertex shift along the normal, edge found (n,) bool, ok).
 
     The edge points are soft targets of one regularised Laplacian step (as in the deformation)
@@ -203,30 +280,19 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
     ``edge_level``: a number in (0, 1), or ("slab", full contrast in HU) for the blurred-slab
     model's level per vertex; None: that model with the full contrast of these vertices
     (:func:`contrast_reference`)."""
-    step = PROFILE_STEP_MM
     if edge_level is None:
         reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast)
         edge_level = 0.5 if not np.isfinite(reference) else ("slab", reference)
-    n, t, prof, i_peak, peak, valley, inner = _profiles(vertices, faces, ct_smooth, spacing)
-    cols = np.arange(len(t))[None, :]
-    if isinstance(edge_level, tuple):
-        with np.errstate(invalid="ignore", divide="ignore"):
-            contrast = peak - valley
-            fraction = slab_edge_level(contrast / edge_level[1], (peak - inner) / contrast)
-    else:
-        fraction = edge_level
-    level = valley + fraction * (peak - valley)
-    below = (prof < level[:, None]) & (cols > i_peak[:, None])
-    first = np.argmax(below, axis=1)
-    has = below[np.arange(len(prof)), first]
-    k1 = np.maximum(first - 1, 0)
-    g0 = prof[np.arange(len(prof)), k1]
-    g1 = prof[np.arange(len(prof)), first]
-    frac = np.clip((g0 - level) / np.maximum(g0 - g1, 1e-6), 0.0, 1.0)
-    t_cross = t[k1] + frac * step
-    ok = has & np.isfinite(valley) & (peak - valley >= min_contrast) & (peak >= ht)
+    n, t_cross, ok, _ = edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
+                                       min_contrast)
     shift = np.where(ok, np.clip(t_cross, -max_shift, max_shift), 0.0)
     w = ok.astype(np.float64)
+    if plate_targets is not None:
+        # No edge on the profile, but a plate thinner than the CT resolves: its model's face.
+        plate = plate_targets(vertices, n)
+        use = ~ok & np.isfinite(plate)
+        shift = np.where(use, np.clip(np.nan_to_num(plate), -max_shift, max_shift), shift)
+        w[use] = 1.0
     if ops is None:
         L = laplacian(len(vertices), faces)
         ops = ((L.T @ L).tocsr(), (sp.identity(len(vertices), format="csr") - L).tocsr())
@@ -240,7 +306,7 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
         w[~allowed(targets)] = 0.0
     A = (smoothness * LtL + sp.diags(w + damping)).tocsr()
     rhs = w[:, None] * targets + smoothness * (LtL @ vertices) + damping * vertices
-    new = solve_spd(A, rhs, vertices)
+    new = solve_spd(A, rhs, vertices, fallbacks, "refine")
     new, safe, _ = safe_update(vertices, new, faces, intersections=False)
     moved = np.einsum("ij,ij->i", new - vertices, n)
     return new, moved, ok, safe

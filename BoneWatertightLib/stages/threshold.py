@@ -101,7 +101,8 @@ def segment_region(segment: np.ndarray, spacing: float, close_mm: float = REGION
 
 def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.ndarray,
                k: int, spacing: float, *, h0: float, theta_max: float, coarseness: float,
-               opening: int, closing: int) -> BoneMasks:
+               opening: int, closing: int, unsupported: np.ndarray = None,
+               fallbacks=None) -> BoneMasks:
     """W_H0, W_HT and their solid versions for bone k (label index ``k``).
 
     Parameters
@@ -121,6 +122,11 @@ def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.
         twice this are closed (partial volume breaks thin cortex on thick slices).
     opening, closing : int
         l and n of the paper.
+    unsupported : (z, y, x) bool array, optional
+        Parts of the labels that the CT shows to be soft tissue (:func:`.ownership.unsupported_parts`):
+        the label-restricted closing does not fill them.
+    fallbacks : BoneWatertightLib.report.FallbackLog, optional
+        Notes an opening skipped because it would empty a window.
     """
     owned_all = owner == k
     core_all = cores == k
@@ -133,9 +139,10 @@ def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.
     r = max(1, int(round(coarseness / spacing)))
     closed = ndimage.binary_closing(np.pad(owned | core, r + 1), structure=SIX,
                                     iterations=r)[r + 1:-r - 1, r + 1:-r - 1, r + 1:-r - 1]
-    owned = owned | (closed & lab_k & (owner[box] == 0))
-    w_h0 = _open_close((owned & strong) | core, opening, closing)
-    w_ht = _open_close(owned | core, opening, closing) | w_h0
+    trusted = lab_k if unsupported is None else lab_k & ~unsupported[box]
+    owned = owned | (closed & trusted & (owner[box] == 0))
+    w_h0 = _open_close((owned & strong) | core, opening, closing, fallbacks, "W_H0")
+    w_ht = _open_close(owned | core, opening, closing, fallbacks, "W_HT") | w_h0
     solid_h0 = solidify(w_h0, spacing)
     occupancy = solidify(w_ht | solid_h0, spacing)
     far = ndimage.binary_erosion(occupancy, structure=SIX,
@@ -197,7 +204,8 @@ def coarse_distance(mask: np.ndarray, spacing: float, step_mm: float = 1.0) -> t
     return distance_outside(coarse) * (f * spacing), f
 
 
-def _open_close(mask: np.ndarray, opening: int, closing: int) -> np.ndarray:
+def _open_close(mask: np.ndarray, opening: int, closing: int, fallbacks=None,
+                where: str = "") -> np.ndarray:
     # Paper: Open^l . Close^n (closing first fills pores, opening then removes spurs).
     out = mask
     if closing:
@@ -207,7 +215,10 @@ def _open_close(mask: np.ndarray, opening: int, closing: int) -> np.ndarray:
         out = out[pad:-pad, pad:-pad, pad:-pad]
     if opening:
         opened = ndimage.binary_opening(out, structure=SIX, iterations=opening)
-        # Opening must not cut the bone into pieces: keep what it removed where that happens.
+        # Opening must not empty the mask: then the closed mask is kept as it is.
+        if not opened.any() and fallbacks is not None:
+            fallbacks.add("threshold", f"opening ({opening}) would empty the mask: it is kept "
+                          "unopened", int(out.sum()), "voxels", where)
         out = opened if opened.any() else out
     return out
 
@@ -234,12 +245,17 @@ def voxel_points(mask: np.ndarray, spacing: float) -> np.ndarray:
     return np.stack([idx[2], idx[1], idx[0]], axis=1).astype(np.float64) * spacing
 
 
-def crossing_points(values: np.ndarray, inside: np.ndarray, level: float, spacing: float) -> np.ndarray:
+def crossing_points(values: np.ndarray, inside: np.ndarray, level: float, spacing: float,
+                    crossed: bool = False):
     """Sub-voxel points where the image crosses ``level`` between an inside and an outside voxel.
 
     Only grid edges that leave ``inside`` are used, so the points lie on bone k's outer boundary
-    (the marching-cubes vertex positions of the HT isosurface restricted to bone k)."""
+    (the marching-cubes vertex positions of the HT isosurface restricted to bone k). An edge
+    whose two voxels do not straddle ``level`` gets its midpoint (a fallback): with
+    ``crossed``, returns (points (k, 3), (k,) bool: a crossing was found) instead of the
+    points."""
     pts = []
+    found = []
     for axis in range(3):
         for step in (1, -1):
             out_nb = np.roll(inside, -step, axis=axis)
@@ -256,13 +272,14 @@ def crossing_points(values: np.ndarray, inside: np.ndarray, level: float, spacin
             f_in = values[idx]
             f_out = values[tuple(nb)]
             denom = f_in - f_out
+            crosses = (f_in >= level) & (f_out < level) & (denom > 0)
+            found.append(crosses)
             with np.errstate(divide="ignore", invalid="ignore"):
-                t = np.where((f_in >= level) & (f_out < level) & (denom > 0),
-                             (f_in - level) / denom, 0.5)
+                t = np.where(crosses, (f_in - level) / denom, 0.5)
             t = np.clip(t, 0.0, 1.0)
             p = np.stack([idx[2], idx[1], idx[0]], axis=1).astype(np.float64)
             p[:, 2 - axis] += step * t
             pts.append(p * spacing)
     if not pts:
-        return np.zeros((0, 3))
-    return np.concatenate(pts)
+        return (np.zeros((0, 3)), np.zeros(0, bool)) if crossed else np.zeros((0, 3))
+    return (np.concatenate(pts), np.concatenate(found)) if crossed else np.concatenate(pts)

@@ -1,0 +1,351 @@
+"""Stage 4b (ours): thin bone plates that the CT barely resolves.
+
+A cortical plate thinner than the CT's resolution - an iliac wing, a scapular blade, a sacral
+ala, a transverse process on 2.5-3 mm slices - is blurred into a faint *ridge*: a sheet-like
+local maximum of the CT a few hundred HU above the soft tissue, often below H0 and HT, so the
+two-step threshold and its opening cut it away and the surface gets a hole (or lace) where the
+bone is. The ridge still says where the plate is, and how much bone it holds:
+
+1. **Ridges**: on the CT smoothed at the scale of its own voxels, voxels where the Hessian has
+   one strongly negative eigenvalue lambda_1 and two small ones (a bright sheet), whose
+   sub-voxel maximum along lambda_1's eigenvector e (the plate's normal) lies within the voxel,
+   and whose peak stands at least ``min_contrast`` above the local background on both sides.
+2. **Thickness** (the blurred-slab model of cortical bone mapping): a blur preserves the bone
+   mass across the plate, so its true thickness is w = integral of (CT - background) along e /
+   (cortex - background) - independent of the point-spread function, which need not be known.
+   Only plates thinner than the CT's resolution along e (its voxel extent in that direction)
+   are kept: thicker bone is resolved and the thresholds and the edge refinement handle it.
+3. **The model**: each ridge point stands for a slab of thickness t = max(w, t_min) centred on
+   it (t_min: the thinnest slab the working grid and the remeshing resolve without holes). The
+   slab joins the bone's masks (visible-point candidates, the deformation's inside test), is
+   fused into the initial surface M0 (Poisson at depth 7 cannot resolve a plate of a few
+   millimetres in a bone 20 cm long), and gives the edge refinement a target on the vertices
+   where the CT profile shows no edge.
+
+Points are (n, 3) x-y-z millimetres of the working grid; volumes (z, y, x) arrays.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+# Ridge scale: Gaussian sigma = max(working spacing, PLATE_SIGMA_FRACTION x the CT's finest
+# spacing) - the scale of the blur the plate has already had.
+PLATE_SIGMA_FRACTION = 0.25
+# A sheet: the second Hessian eigenvalue is at most this fraction of the first (a tube has
+# two equally negative eigenvalues, a blob three).
+PLATE_SHEETNESS = 0.5
+# The profile across the plate is read within +- PLATE_WINDOW x the CT's resolution along the
+# normal (the blur of a thin plate spreads about that far).
+PLATE_WINDOW = 1.5
+# A plate is thinner than PLATE_MAX_RESOLUTION x the CT's resolution along its normal, and holds
+# at least as much bone as a cortex PLATE_MIN_MM thick: a ridge with less mass under it is
+# soft tissue's texture or noise (the thinnest cortical plates are 0.2-0.3 mm).
+PLATE_MAX_RESOLUTION = 1.0
+PLATE_MIN_MM = 0.15
+# A ridge stands at least PLATE_NOISE_FACTOR x the noise of the smoothed CT above its local
+# background (the noise measured in the soft tissue within SOFT_WINDOW_HU of its level).
+PLATE_NOISE_FACTOR = 4.0
+SOFT_WINDOW_HU = 60.0
+# Ridge pieces of fewer than PLATE_MIN_POINTS points are noise.
+PLATE_MIN_POINTS = 20
+# Refinement targets: only where the vertex normal is within PLATE_MAX_ANGLE_DEG of the plate's
+# and the vertex lies within t / 2 + PLATE_SNAP_MM of the ridge.
+PLATE_MAX_ANGLE_DEG = 40.0
+PLATE_SNAP_MM = 2.0
+# t_min = PLATE_MIN_STEPS x the coarser of the working voxel and the remeshing grid step: a
+# thinner slab has no grid point inside it somewhere and comes out as a hole.
+PLATE_MIN_STEPS = 1.2
+
+
+@dataclass
+class Plates:
+    """Thin plates of one bone.
+
+    ``points`` (m, 3): sub-voxel ridge points (x-y-z mm of the working grid); ``normals``
+    (m, 3): unit plate normals; ``thickness`` (m,): the estimated true thickness w (mm);
+    ``model`` (m,): the slab thickness the surface is given, max(w, t_min) (mm);
+    ``contrast`` (m,): ridge peak above the local background (HU); ``spacing``: the working
+    grid's voxel size; ``info``: counts and figures for the report.
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    thickness: np.ndarray
+    model: np.ndarray
+    contrast: np.ndarray
+    spacing: float
+    info: dict = field(default_factory=dict)
+    _tree: object = field(default=None, repr=False)
+
+    @property
+    def n(self) -> int:
+        return int(len(self.points))
+
+    def subset(self, keep: np.ndarray) -> "Plates":
+        """The plates of the points where ``keep`` (m,) is true."""
+        return Plates(self.points[keep], self.normals[keep], self.thickness[keep],
+                      self.model[keep], self.contrast[keep], self.spacing, dict(self.info))
+
+    @property
+    def tree(self):
+        if self._tree is None:
+            self._tree = cKDTree(self.points)
+        return self._tree
+
+    def offsets(self, points: np.ndarray, lateral_max: float):
+        """For each point (k, 3): (index of the nearest ridge point or -1, signed distance
+        along that point's normal, lateral distance), for ridge points within reach."""
+        k = len(points)
+        idx = np.full(k, -1, np.int64)
+        along = np.zeros(k)
+        lateral = np.full(k, np.inf)
+        if not self.n or not k:
+            return idx, along, lateral
+        reach = 0.5 * float(self.model.max()) + PLATE_SNAP_MM + lateral_max
+        dist, j = self.tree.query(points, distance_upper_bound=reach, workers=-1)
+        ok = np.isfinite(dist)
+        jj = j[ok]
+        rel = points[ok] - self.points[jj]
+        a = np.einsum("ij,ij->i", rel, self.normals[jj])
+        lat = np.sqrt(np.maximum((rel * rel).sum(axis=1) - a * a, 0.0))
+        idx[ok], along[ok], lateral[ok] = jj, a, lat
+        return idx, along, lateral
+
+    def mask(self, shape: tuple, origin: np.ndarray) -> np.ndarray:
+        """The slabs as voxels of a box: (z, y, x) bool of ``shape`` whose voxel (0, 0, 0) is
+        at ``origin`` (x-y-z mm)."""
+        return self.field(shape, origin, self.spacing) >= 0.5
+
+    def field(self, shape: tuple, origin, step: float) -> np.ndarray:
+        """The slabs as a [0, 1] occupancy ramp on a grid of step ``step`` (z, y, x) of
+        ``shape`` whose voxel (0, 0, 0) is at ``origin``: 1 inside a slab, 0 outside, linear
+        over one step across its faces (so that its 0.5 level is the slab's face, sub-voxel)."""
+        out = np.zeros(shape, np.float32)
+        if not self.n:
+            return out
+        origin = np.asarray(origin, np.float64)
+        near = np.zeros(shape, bool)
+        ijk = np.rint((self.points - origin) / step).astype(np.int64)
+        inside = np.all((ijk >= 0) & (ijk < np.array(shape[::-1])), axis=1)
+        if not inside.any():
+            return out
+        ijk = ijk[inside]
+        near[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = True
+        grow = int(np.ceil((0.5 * float(self.model.max()) + step) / step)) + 1
+        near = ndimage.binary_dilation(near, structure=np.ones((3, 3, 3), bool), iterations=grow)
+        zyx = np.argwhere(near)
+        pts = zyx[:, ::-1] * step + origin
+        j, along, lateral = self.offsets(pts, 0.0)
+        ok = j >= 0
+        half = 0.5 * self.model[np.maximum(j, 0)]
+        # Lateral reach: ridge points are about one working voxel apart; beyond that the
+        # point lies past the plate's rim.
+        val = np.clip(0.5 + (half - np.abs(along)) / step, 0.0, 1.0)
+        val[~ok | (lateral > 0.87 * max(self.spacing, step))] = 0.0
+        out[zyx[:, 0], zyx[:, 1], zyx[:, 2]] = val
+        return out
+
+    def targets(self, vertices: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """Shift (mm) along each vertex normal that puts the vertex on its plate's face, NaN
+        where no plate is near or the normals disagree: (n,) float array."""
+        shift = np.full(len(vertices), np.nan)
+        j, along, lateral = self.offsets(vertices, 0.0)
+        ok = (j >= 0) & (lateral <= 1.5 * self.spacing)
+        if not ok.any():
+            return shift
+        jj = j[ok]
+        side = np.where(along[ok] >= 0, 1.0, -1.0)
+        cos = side * np.einsum("ij,ij->i", normals[ok], self.normals[jj])
+        half = 0.5 * self.model[jj]
+        good = (cos >= np.cos(np.radians(PLATE_MAX_ANGLE_DEG))) & \
+            (np.abs(along[ok]) <= half + PLATE_SNAP_MM)
+        s = (side * half - along[ok]) / np.maximum(cos, 1e-3) * side
+        out = np.full(ok.sum(), np.nan)
+        out[good] = s[good]
+        shift[ok] = out
+        return shift
+
+
+def empty_plates(spacing: float) -> Plates:
+    return Plates(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0), np.zeros(0),
+                  spacing, {"points": 0})
+
+
+def find_plates(ct: np.ndarray, region: np.ndarray, bone: np.ndarray, resolved: np.ndarray,
+                spacing: float, *, native_spacing, soft: float, cortex: float,
+                max_contrast: float, min_thickness: float, origin=(0.0, 0.0, 0.0)) -> Plates:
+    """Thin plates of one bone (see the module doc).
+
+    Parameters
+    ----------
+    ct : (z, y, x) float array
+        The CT (HU) resampled onto the working grid (not sharpened: the thickness comes from
+        the bone mass under the profile), on the bone's box.
+    region : (z, y, x) bool array
+        Where the bone's plates may lie (its segment and band, not another bone's).
+    bone : (z, y, x) bool array
+        The bone's own evidence: a ridge piece that touches it is a plate of the bone.
+    resolved : (z, y, x) bool array
+        Where the thresholds already hold the bone at least ``min_thickness`` thick (no plate
+        is sought there).
+    spacing : float
+        Working voxel size d (mm).
+    native_spacing : sequence of 3 floats
+        The CT's own spacing (x, y, z) in mm, in the working grid's axes.
+    soft : float
+        Soft-tissue level (HU).
+    cortex : float
+        Full cortical level (HU) of the bone (thick cortex).
+    max_contrast : float
+        The least peak height above the local background (HU) a ridge needs is
+        PLATE_NOISE_FACTOR x the noise of the smoothed CT in the box's soft tissue, but never
+        more than this.
+    min_thickness : float
+        t_min (mm): the thinnest slab the surface is given.
+    origin : sequence of 3 floats
+        x-y-z mm of the box's voxel (0, 0, 0) on the working grid (the points are returned in
+        working-grid millimetres).
+
+    Returns
+    -------
+    Plates
+    """
+    d = float(spacing)
+    native = np.asarray(native_spacing, np.float64)
+    if not region.any():
+        return empty_plates(d)
+    sigma_mm = max(d, PLATE_SIGMA_FRACTION * float(native.min()))
+    sm = ndimage.gaussian_filter(ct.astype(np.float32), sigma=sigma_mm / d, mode="nearest")
+    noise = soft_tissue_noise(sm, region | bone, soft)
+    min_contrast = min(max_contrast, PLATE_NOISE_FACTOR * noise)
+    cand = region & (sm >= soft + min_contrast) & ~resolved
+    cand[[0, -1], :, :] = False
+    cand[:, [0, -1], :] = False
+    cand[:, :, [0, -1]] = False
+    # Local maxima along at least one grid axis: the cheap pre-selection of ridge voxels.
+    peak_any = np.zeros(sm.shape, bool)
+    for axis in range(3):
+        peak_any |= (sm >= np.roll(sm, 1, axis=axis)) & (sm >= np.roll(sm, -1, axis=axis))
+    cand &= peak_any
+    del peak_any
+    idx = np.argwhere(cand)
+    del cand
+    found = [_ridges(sm, idx[a:a + CHUNK], d, native, cortex, min_contrast)
+             for a in range(0, len(idx), CHUNK)]
+    idx = np.concatenate([f[0] for f in found]) if found else np.zeros((0, 3), np.int64)
+    if not len(idx):
+        return empty_plates(d)
+    pts, e, w, contrast = (np.concatenate([f[i] for f in found]) for i in range(1, 5))
+    # Ridge pieces: kept when they touch the bone's evidence (a plate of the bone, not a
+    # structure of the soft tissue beside it).
+    lab = np.zeros(sm.shape, bool)
+    lab[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    pieces, n_pieces = ndimage.label(lab, structure=np.ones((3, 3, 3), bool))
+    piece = pieces[idx[:, 0], idx[:, 1], idx[:, 2]]
+    size = np.bincount(piece, minlength=n_pieces + 1)
+    near_bone = ndimage.binary_dilation(bone, structure=np.ones((3, 3, 3), bool), iterations=2)
+    touching = np.zeros(n_pieces + 1, bool)
+    touching[np.unique(piece[near_bone[idx[:, 0], idx[:, 1], idx[:, 2]]])] = True
+    good = touching[piece] & (size[piece] >= PLATE_MIN_POINTS)
+    pts, e, w, contrast = pts[good], e[good], w[good], contrast[good]
+    model = np.maximum(w, min_thickness)
+    info = {"points": int(len(pts)), "area_mm2": float(len(pts) * d * d),
+            "thickness_mm_median": float(np.median(w)) if len(w) else None,
+            "thickness_mm_p10": float(np.percentile(w, 10)) if len(w) else None,
+            "thickened_fraction": float((w < min_thickness).mean()) if len(w) else 0.0,
+            "min_thickness_mm": float(min_thickness), "ridge_sigma_mm": float(sigma_mm),
+            "min_contrast_hu": float(min_contrast), "noise_hu": float(noise),
+            "cortex_hu": float(cortex)}
+    return Plates(pts + np.asarray(origin, np.float64), e, w, model, contrast, d, info)
+
+
+def _hessian_ridge(sm, idx, d):
+    """Hessian eigenvalues (k, 3) ascending, the first eigenvector (k, 3) x-y-z and the
+    Newton step along it (k,) (mm) of ``sm`` at voxels idx (k, 3) (z, y, x), by central
+    differences."""
+    z, y, x = idx.T
+
+    def at(dz, dy, dx):
+        return sm[z + dz, y + dy, x + dx].astype(np.float64)
+
+    c0 = at(0, 0, 0)
+    H = np.empty((len(idx), 3, 3))
+    H[:, 0, 0] = at(0, 0, 1) - 2 * c0 + at(0, 0, -1)
+    H[:, 1, 1] = at(0, 1, 0) - 2 * c0 + at(0, -1, 0)
+    H[:, 2, 2] = at(1, 0, 0) - 2 * c0 + at(-1, 0, 0)
+    H[:, 0, 1] = H[:, 1, 0] = 0.25 * (at(0, 1, 1) - at(0, 1, -1) - at(0, -1, 1) + at(0, -1, -1))
+    H[:, 0, 2] = H[:, 2, 0] = 0.25 * (at(1, 0, 1) - at(1, 0, -1) - at(-1, 0, 1) + at(-1, 0, -1))
+    H[:, 1, 2] = H[:, 2, 1] = 0.25 * (at(1, 1, 0) - at(1, -1, 0) - at(-1, 1, 0) + at(-1, -1, 0))
+    H /= d * d
+    g = 0.5 * np.stack([at(0, 0, 1) - at(0, 0, -1), at(0, 1, 0) - at(0, -1, 0),
+                        at(1, 0, 0) - at(-1, 0, 0)], axis=1) / d
+    lam, vec = np.linalg.eigh(H)
+    e = vec[:, :, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        delta = -np.einsum("ij,ij->i", g, e) / lam[:, 0]
+    return lam, e, np.nan_to_num(delta, nan=np.inf)
+
+
+def soft_tissue_noise(sm: np.ndarray, exclude: np.ndarray, soft: float) -> float:
+    """Noise (HU, a robust standard deviation) of the smoothed CT ``sm`` in the soft tissue of
+    its box: voxels within SOFT_WINDOW_HU of the soft-tissue level, away from ``exclude``
+    (the bone and its region). Soft tissue's own texture counts as noise (an upper bound)."""
+    away = ~ndimage.binary_dilation(exclude, iterations=2)
+    v = sm[away & (np.abs(sm - soft) <= SOFT_WINDOW_HU)]
+    if v.size < 100:
+        return float(SOFT_WINDOW_HU / PLATE_NOISE_FACTOR)
+    return float(1.4826 * np.median(np.abs(v - np.median(v))))
+
+
+# Candidate voxels are examined in chunks of this many (bounds the profiles' memory).
+CHUNK = 100_000
+
+
+def _ridges(sm, idx, d, native, cortex, min_contrast):
+    """Of candidate voxels idx (k, 3) (z, y, x): the thin-plate ridge voxels, their
+    sub-voxel points (x-y-z mm of the box), normals, thicknesses and contrasts."""
+    none = (np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0),
+            np.zeros(0))
+    if not len(idx):
+        return none
+    lam, e, delta = _hessian_ridge(sm, idx, d)
+    l1, l2 = lam[:, 0], lam[:, 1]
+    # (Within the voxel: the cube's half-extent along e, so every column across a plate has
+    # a ridge voxel.)
+    ridge = (l1 < 0) & (l2 > PLATE_SHEETNESS * l1) & \
+        (np.abs(delta) <= 0.5 * d * np.abs(e).sum(axis=1))
+    if not ridge.any():
+        return none
+    idx, e, delta = idx[ridge], e[ridge], delta[ridge]
+    pts = idx[:, ::-1].astype(np.float64) * d + delta[:, None] * e
+    # The CT's resolution along each plate normal: its voxel extent in that direction.
+    res = np.sqrt(((e * native[None, :]) ** 2).sum(axis=1))
+    window = PLATE_WINDOW * res
+    step = 0.5 * d
+    t = np.arange(-float(window.max()), float(window.max()) + 1e-9, step)
+    samples = pts[:, None, :] + t[None, :, None] * e[:, None, :]
+    # The smoothed CT: a blur keeps the bone mass under the profile and the smoothing keeps
+    # noise from making a ridge of soft tissue.
+    prof = ndimage.map_coordinates(sm, samples[..., ::-1].reshape(-1, 3).T / d, order=1,
+                                   mode="nearest").reshape(len(pts), len(t))
+    within = np.abs(t)[None, :] <= window[:, None]
+    peak = np.max(np.where((np.abs(t) <= d)[None, :], prof, -np.inf), axis=1)
+    il = np.argmin(np.where(within & (t[None, :] < 0), prof, np.inf), axis=1)
+    ir = np.argmin(np.where(within & (t[None, :] > 0), prof, np.inf), axis=1)
+    rows = np.arange(len(pts))
+    # Local background: the valleys on both sides (soft tissue, fat, or marrow between two
+    # cortices); the bone mass is what stands above it between them.
+    bg = 0.5 * (prof[rows, il] + prof[rows, ir])
+    cols = np.arange(len(t))[None, :]
+    between = (cols >= il[:, None]) & (cols <= ir[:, None])
+    mass = np.sum(np.where(between, np.clip(prof - bg[:, None], 0.0, None), 0.0), axis=1) * step
+    w = mass / np.maximum(cortex - bg, 1.0)
+    contrast = peak - bg
+    keep = (contrast >= min_contrast) & (w >= PLATE_MIN_MM) & (w < PLATE_MAX_RESOLUTION * res)
+    return idx[keep], pts[keep], e[keep], w[keep], contrast[keep]
+
