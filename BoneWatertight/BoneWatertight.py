@@ -38,7 +38,7 @@ _ensureLibraryOnPath()
 
 # The library's parameter schema (stdlib-only import): ranges, defaults, labels and help of every
 # algorithm parameter are declared there once and applied here to the parameter node and widgets.
-from BoneWatertightLib.params import PRESETS, SCHEMA  # noqa: E402
+from BoneWatertightLib.params import SCHEMA  # noqa: E402
 
 # The panel's decisions (Apply/Cancel/install states, when the preview shows and hides, Auto's
 # clamping to the schema, the self-test's install-or-skip): plain Python, tested in CI.
@@ -50,7 +50,6 @@ from BoneWatertightLib.app.slicer_support import (  # noqa: E402
     dependency_test_plan,
 )
 
-PRESET_NAMES = ["custom", *PRESETS]
 SAMPLE_FOLDER = os.path.join("SampleData", "lumbar_spine_3mm")
 
 #
@@ -163,7 +162,7 @@ class BoneWatertightParameterNode:
     has no connector for it); segmentId - the first of them (what a parameter node of an older
     version holds: it is adopted when segmentIds is empty). neighbours - the other segments
     compete as neighbours. outputModel - result model of a one-bone run (several bones: one
-    model each, found again by their source segment). preset - the last preset chosen.
+    model each, found again by their source segment).
     addAsSegment, showIntermediates, colorByDistance - outputs. The algorithm parameters
     (spacing, h0, ht, ...) are added by withLibraryParameters from the library's schema; for
     those whose schema allows "auto" the slider's sentinel (0) means auto.
@@ -175,7 +174,6 @@ class BoneWatertightParameterNode:
     segmentId: str = ""
     neighbours: bool = True
     outputModel: vtkMRMLModelNode
-    preset: Annotated[str, Choice(PRESET_NAMES)] = "custom"
     addAsSegment: bool = False
     showIntermediates: bool = False
     colorByDistance: bool = True
@@ -220,14 +218,14 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._parameterNode = None
         self._parameterNodeGuiTag = None
         self._applyGuard = ApplyGuard()
-        self._preview = None  # BoneWatertightLib.mrml.ThresholdPreview (its crop cache)
+        self._preview = None  # BoneWatertightLib.app.preview.ThresholdPreview (its crop cache)
         self._previewController = None
         self._previewTimer = None
         self._savedViewState = None
         self._updatingSegmentSelector = False
         self._segmentationShown = None  # the segmentation whose segments the selector last showed
         self._connectingGui = False  # connectGui writes the sliders: no preview for that
-        self._childRun = None  # BoneWatertightLib.mrml.ChildNodesRun of a run in a child process
+        self._childRun = None  # BoneWatertightLib.app.nodes.ChildNodesRun of a run in a child process
         self._childRunDone = None  # (showResult, showFailure) of that run
         self._childRunTimer = None
         self._childRunMessage = ""
@@ -249,9 +247,6 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         # has no parameter-node connector: sync it by hand.
         self.ui.segmentSelector.connect("currentNodeChanged(vtkMRMLNode*)", self.onSegmentSelectorChanged)
         self.ui.segmentSelector.connect("segmentSelectionChanged(QStringList)", self.onSegmentSelectorChanged)
-        # activated(): user choices only. The parameter-node connector rewrites this combo on every
-        # connectGui/scene load, and re-applying a stored preset then would undo the user's edits.
-        self.ui.presetComboBox.connect("activated(int)", self.onPresetChanged)
         self.ui.autoThresholdButton.connect("clicked(bool)", self.onAutoThreshold)
         self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
 
@@ -267,7 +262,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._childRunTimer.connect("timeout()", self.onChildRunTimer)
         # ctkSliderWidget tracks by default: valueChanged comes at every drag step (and
         # valueIsChanging never), so the preview follows the mouse; each step only
-        # thresholds the cached crop around the segment (mrml.ThresholdPreview).
+        # thresholds the cached crop around the segment (app.preview.ThresholdPreview).
         for slider in (self.ui.thetaMaxSlider, self.ui.h0Slider, self.ui.htSlider):
             slider.tracking = True
             slider.connect("valueChanged(double)", self.onThresholdChanged)
@@ -329,7 +324,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._onParameterNodeModified)
 
     def onSceneStartClose(self, caller, event) -> None:
-        # A run in progress is cancelled by the logic's own scene guard (mrml.RunGuard: it
+        # A run in progress is cancelled by the logic's own scene guard (app.nodes.RunGuard: it
         # raises CancelledError before anything is written; a child process is stopped at
         # once); stop asking for more work too.
         if self._applyGuard.requestCancel():
@@ -377,7 +372,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         selector did, so Apply is ready for one bone at once)."""
         if self._parameterNode is None or self._updatingSegmentSelector:
             return
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes
 
         p = self._parameterNode
         seg = p.inputSegmentation
@@ -385,7 +380,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         try:
             if self.ui.segmentSelector.currentNode() != seg:
                 self.ui.segmentSelector.setCurrentNode(seg)
-            ids = mrml.segment_selection(seg, list(p.segmentIds), p.segmentId,
+            ids = nodes.segment_selection(seg, list(p.segmentIds), p.segmentId,
                                          pickFirst=seg is not None and seg != self._segmentationShown)
             self._segmentationShown = seg
             if seg is not None and list(self.ui.segmentSelector.selectedSegmentIDs()) != ids:
@@ -435,26 +430,16 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.outputModelSelector.enabled = not several
         self.ui.outputNoteLabel.visible = several
 
-    # --- presets and thresholds
-
-    def onPresetChanged(self, index) -> None:
-        name = self.ui.presetComboBox.currentText
-        if not self._parameterNode or name not in PRESETS:
-            return
-        # A preset sets only its own fields (thresholds, morphology); the user's spacing,
-        # iterations, edge level ... stay as they are.
-        with slicer.util.NodeModify(self._parameterNode):
-            for key, value in PRESETS[name].items():
-                setattr(self._parameterNode, key, SCHEMA[key].to_panel(value))
+    # --- thresholds
 
     def onAutoThreshold(self) -> None:
         p = self._parameterNode
         with slicer.util.tryWithErrorDisplay(_("Could not propose thresholds."), waitCursor=True):
-            from BoneWatertightLib import mrml
+            from BoneWatertightLib.app import nodes
 
             # several bones: from the union of their segments (the pipeline's auto does the same)
-            proposal = mrml.propose_thresholds(p.inputVolume, p.inputSegmentation, self._chosenSegmentIds(),
-                                               p.theta_max)
+            proposal = nodes.propose_thresholds(p.inputVolume, p.inputSegmentation, self._chosenSegmentIds(),
+                                                p.theta_max)
             # the proposal may leave the fields' declared ranges (theta_max on extended-HU CT
             # with metal): clamp to the schema, keeping HT < H0 < theta_max
             values, notes = clamp_threshold_proposal(proposal)
@@ -482,14 +467,14 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         p = self._parameterNode
         if not p or not p.inputVolume:
             return
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import preview
 
         h0 = self.ui.h0Slider.value
         ht = self.ui.htSlider.value
         tmax = self.ui.thetaMaxSlider.value
         try:
             if self._preview is None or self._preview.scene is not slicer.mrmlScene:
-                self._preview = mrml.ThresholdPreview(slicer.mrmlScene)
+                self._preview = preview.ThresholdPreview(slicer.mrmlScene)
             previewNode = self._preview.update(p.inputVolume, p.inputSegmentation, self._chosenSegmentIds(),
                                                h0, ht, tmax)
         except Exception as exc:  # a preview must never interrupt the user; say why it is missing
@@ -618,14 +603,14 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             return
         self.ui.resultLabel.text = ""
         start = time.time()
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes
         from BoneWatertightLib.errors import CancelledError
 
         ids = self._chosenSegmentIds()
         several = len(ids) > 1
         # one bone: the chosen output model (None: a new one, kept for the next run); several:
         # one model each, replacing those an earlier run made from the same segments
-        outputs = (mrml.previous_output_models(slicer.mrmlScene, p.inputSegmentation, ids) if several
+        outputs = (nodes.previous_output_models(slicer.mrmlScene, p.inputSegmentation, ids) if several
                    else [p.outputModel])
         options = dict(neighbours="auto" if p.neighbours else "none", addAsSegments=p.addAsSegment,
                        showIntermediates=p.showIntermediates, colorByDistance=p.colorByDistance,
@@ -728,7 +713,7 @@ class BoneWatertightWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
 
 class BoneWatertightLogic(ScriptedLoadableModuleLogic):
-    """Thin Slicer logic: all computation is in BoneWatertightLib (pipeline + the mrml adapter).
+    """Thin Slicer logic: all computation is in BoneWatertightLib (its run service on MRML nodes, app.nodes, over the mrml adapter).
 
     Works without the widget, e.g. from the Python console or a batch script:
     ``BoneWatertightLogic().process(ctNode, segNode, segmentId, h0=300, ht=150)`` for one bone,
@@ -743,19 +728,18 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         return BoneWatertightParameterNode(super().getParameterNode())
 
     @staticmethod
-    def _parameters(preset: Optional[str], parameters: dict):
-        from BoneWatertightLib.params import Parameters, apply_preset
+    def _parameters(parameters: dict):
+        from BoneWatertightLib.errors import InputError
+        from BoneWatertightLib.params import PRESETS_REMOVED, Parameters
 
-        params = Parameters()
-        if preset and preset != "custom":
-            params = apply_preset(params, preset)
-        return params.replace(**parameters)
+        if "preset" in parameters:  # an argument of older versions
+            raise InputError(PRESETS_REMOVED)
+        return Parameters().replace(**parameters)
 
     def process(self, volumeNode: vtkMRMLScalarVolumeNode, segmentationNode: vtkMRMLSegmentationNode,
                 segmentId: Union[str, Sequence[str]], outputModelNode=None, progressCallback=None,
                 addAsSegment: bool = False, showIntermediates: bool = False, colorByDistance: bool = True,
-                preset: Optional[str] = None, neighbours: Union[str, Sequence[str]] = "auto",
-                **parameters):
+                neighbours: Union[str, Sequence[str]] = "auto", **parameters):
         """Reconstruct the watertight bone surface into a model node.
 
         :param volumeNode: CT volume (vtkMRMLScalarVolumeNode, HU).
@@ -768,7 +752,6 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         :param addAsSegment: also add the surface to the segmentation as a new segment.
         :param showIntermediates: add the intermediate point sets and M0 as model nodes.
         :param colorByDistance: colour the model by the per-vertex distance to the constraints.
-        :param preset: "femur", "hip" or "vertebra": sets its own fields; explicit parameters override it.
         :param neighbours: "auto" (default): every other segment of the segmentation is a
             neighbour that competes for the joint (the surface never enters it); "none": the
             segment alone; or a list of segment IDs.
@@ -786,38 +769,38 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         if not isinstance(segmentId, str) and segmentId is not None:
             return self.processMany(volumeNode, segmentationNode, list(segmentId), outputModelNode,
                                     progressCallback, neighbours, addAsSegment, showIntermediates,
-                                    colorByDistance, preset, **parameters)
+                                    colorByDistance, **parameters)
         model, _result = self.processWithResult(
             volumeNode, segmentationNode, segmentId, outputModelNode, progressCallback, addAsSegment,
-            showIntermediates, colorByDistance, preset, neighbours=neighbours, **parameters)
+            showIntermediates, colorByDistance, neighbours=neighbours, **parameters)
         return model
 
     def processWithResult(self, volumeNode: vtkMRMLScalarVolumeNode,
                           segmentationNode: vtkMRMLSegmentationNode, segmentId: str,
                           outputModelNode: Optional[vtkMRMLModelNode] = None, progressCallback=None,
                           addAsSegment: bool = False, showIntermediates: bool = False,
-                          colorByDistance: bool = True, preset: Optional[str] = None,
-                          neighbours: Union[str, Sequence[str]] = "auto", **parameters):
+                          colorByDistance: bool = True, neighbours: Union[str, Sequence[str]] = "auto",
+                          **parameters):
         """As process() for one segment, returning (model node, BoneWatertightLib
         ReconstructionResult with its typed report)."""
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes, summaries
 
-        params = self._parameters(preset, parameters)
+        params = self._parameters(parameters)
         startTime = time.time()
         logging.info("BoneWatertight: processing started")
-        model, result = mrml.run_on_nodes(
+        model, result = nodes.run_on_nodes(
             volumeNode, segmentationNode, segmentId, outputModelNode=outputModelNode, params=params,
             progress=progressCallback, addAsSegment=addAsSegment, showIntermediates=showIntermediates,
             colorByDistance=colorByDistance, neighbours=neighbours)
         logging.info(f"BoneWatertight: processing completed in {time.time() - startTime:.2f} s: "
-                     f"{mrml.summarize(result)}")
+                     f"{summaries.summarize(result)}")
         return model, result
 
     def processMany(self, volumeNode: vtkMRMLScalarVolumeNode, segmentationNode: vtkMRMLSegmentationNode,
                     segmentIds: Sequence[str], outputModelNodes=None, progressCallback=None,
                     neighbours: Union[str, Sequence[str]] = "auto", addAsSegments: bool = False,
                     showIntermediates: bool = False, colorByDistance: bool = True,
-                    preset: Optional[str] = None, **parameters) -> list:
+                    **parameters) -> list:
         """Reconstruct several bones of one segmentation together: one model node per bone.
 
         The bones compete for their joints (and, by default, with every other segment of the
@@ -830,29 +813,29 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         :param neighbours: "auto" (default, every other segment), "none" or a list of segment IDs.
         :param addAsSegments: also write the surfaces into the segmentation as new segments
             "<segment> watertight" that share one label map layer (no voxel in two of them).
-        :param progressCallback, showIntermediates, colorByDistance, preset, parameters: as process().
+        :param progressCallback, showIntermediates, colorByDistance, parameters: as process().
         :return: list of model nodes, one per segment ID.
         :raises: as process(); a failure of any bone leaves the scene unchanged.
         """
         return self.processManyWithResult(volumeNode, segmentationNode, segmentIds, outputModelNodes,
                                           progressCallback, neighbours, addAsSegments, showIntermediates,
-                                          colorByDistance, preset, **parameters).modelNodes
+                                          colorByDistance, **parameters).modelNodes
 
     def processManyWithResult(self, volumeNode: vtkMRMLScalarVolumeNode,
                               segmentationNode: vtkMRMLSegmentationNode, segmentIds: Sequence[str],
                               outputModelNodes=None, progressCallback=None,
                               neighbours: Union[str, Sequence[str]] = "auto", addAsSegments: bool = False,
                               showIntermediates: bool = False, colorByDistance: bool = True,
-                              preset: Optional[str] = None, **parameters):
-        """As processMany(), returning BoneWatertightLib.mrml.JointNodesResult: ``modelNodes``,
+                              **parameters):
+        """As processMany(), returning BoneWatertightLib.app.nodes.JointNodesResult: ``modelNodes``,
         ``addedSegmentIds``, ``neighbourSegmentIds``, ``warnings``, ``summaryLines()`` and the
         pipeline's JointResult (``result.bones[i].report``, ``result.pairs``)."""
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes
 
-        params = self._parameters(preset, parameters)
+        params = self._parameters(parameters)
         startTime = time.time()
         logging.info(f"BoneWatertight: processing {len(segmentIds)} bone(s) started")
-        out = mrml.run_many_on_nodes(
+        out = nodes.run_many_on_nodes(
             volumeNode, segmentationNode, list(segmentIds), outputModelNodes, params,
             progress=progressCallback, neighbours=neighbours, addAsSegments=addAsSegments,
             showIntermediates=showIntermediates, colorByDistance=colorByDistance)
@@ -864,10 +847,10 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
                          segmentIds: Sequence[str], outputModelNodes=None, progressCallback=None,
                          neighbours: Union[str, Sequence[str]] = "auto", addAsSegments: bool = False,
                          showIntermediates: bool = False, colorByDistance: bool = True,
-                         preset: Optional[str] = None, pythonExecutable: Optional[str] = None, **parameters):
+                         pythonExecutable: Optional[str] = None, **parameters):
         """As processManyWithResult(), with the reconstruction in a child process (PythonSlicer
         running the bonewatertight command line): exports the inputs, starts the process and
-        returns at once with a BoneWatertightLib.mrml.ChildNodesRun. Poll it from a timer
+        returns at once with a BoneWatertightLib.app.nodes.ChildNodesRun. Poll it from a timer
         (``fraction, message, finished = run.poll()``, never blocks), stop it with
         ``run.cancel()`` (within a second), then call finishProcessMany(run). Closing the scene
         or removing an input node stops it. progressCallback is called during the export.
@@ -875,12 +858,12 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
         :param pythonExecutable: the interpreter (default: PythonSlicer beside the application).
         :raises: as processMany() for bad inputs (the scene is unchanged).
         """
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes
         from BoneWatertightLib.app.child import find_python_slicer
 
-        params = self._parameters(preset, parameters)
+        params = self._parameters(parameters)
         logging.info(f"BoneWatertight: processing {len(segmentIds)} bone(s) in a child process")
-        return mrml.start_many_on_nodes(
+        return nodes.start_many_on_nodes(
             volumeNode, segmentationNode, list(segmentIds), outputModelNodes, params,
             progress=progressCallback, neighbours=neighbours, addAsSegments=addAsSegments,
             showIntermediates=showIntermediates, colorByDistance=colorByDistance,
@@ -889,12 +872,12 @@ class BoneWatertightLogic(ScriptedLoadableModuleLogic):
 
     def finishProcessMany(self, run, timeout: Optional[float] = None):
         """Second half of startProcessMany(): store the surfaces as processManyWithResult()
-        does and return its BoneWatertightLib.mrml.JointNodesResult (waits for the process
+        does and return its BoneWatertightLib.app.nodes.JointNodesResult (waits for the process
         when it has not finished; timeout in s). Raises the run's typed error (InputError,
         ReconstructionError, CancelledError, ...); the scene is then unchanged."""
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes
 
-        out = mrml.finish_many_on_nodes(run, timeout)
+        out = nodes.finish_many_on_nodes(run, timeout)
         logging.info("BoneWatertight: processing completed in a child process:\n" + "\n".join(out.summaryLines()))
         return out
 

@@ -2,46 +2,33 @@
 
 The only module of BoneWatertightLib that imports ``slicer``; it uses MRML/VTK classes only
 (never qt, ctk, slicer.app or slicer.util), so it runs inside Slicer and, in CI, on the
-``slicer-core`` wheel.
+``slicer-core`` wheel. It converts and writes back; it runs nothing. Running a reconstruction
+on nodes (in the application's process or in a child process), its scene guard and undo, the
+summary lines and the panel's threshold preview are front-end work in :mod:`.app`
+(:mod:`.app.nodes`, :mod:`.app.summaries`, :mod:`.app.preview`), which uses this module and
+never imports ``slicer`` itself.
 
 Coordinate conventions: MRML is RAS, SimpleITK images and the pipeline are LPS. The volume's
 full IJK->RAS matrix (any direction, non-zero origin) and its parent transform (world frame)
 are converted into the SimpleITK origin/spacing/direction; surfaces come back as RAS polydata.
 
 Nothing here modifies an input node: voxels are copied, the segments are exported through
-vtkOrientedImageData objects that never enter the scene, and the output model nodes (and the
-segments written back) are only created or touched after the pipeline succeeded.
+vtkOrientedImageData objects that never enter the scene.
 
-Several bones (SPEC §5b): :func:`run_many_on_nodes` exports the segments to reconstruct and
-their neighbours (by default every other segment of the segmentation) into one label image
-with a value per segment (:func:`segments_to_sitk_labels`; overlapping segments are refused,
-named), reconstructs them together (``pipeline.reconstruct_many``) and, on success only, makes
-one model per bone and, on request, writes the surfaces back as segments that share one label
-map layer, so that no voxel belongs to two of them (:func:`prepare_segments_without_overlap`).
-:func:`run_on_nodes` is the one-bone case (the other segments are its neighbours unless
-``neighbours="none"``).
-
-Besides the conversions: a run that reports progress from its first moment and is cancelled
-when its scene closes (:func:`run_on_nodes`, :class:`RunGuard`, :class:`RunProgress`,
-:func:`load_pipeline`), and the panel's live threshold preview on a cached crop
-(:class:`ThresholdPreview`). The only thread used imports modules (open3d); MRML is touched
-on the caller's thread alone.
-
-The same joint run with the reconstruction in a child process, for a panel whose GUI thread
-must stay free (issue 13): :func:`start_many_on_nodes` checks and exports on the caller's
-thread and starts the child (:class:`BoneWatertightLib.app.child.ChildRun`, the project's
-command line); the returned :class:`ChildNodesRun` is polled from a timer (never blocks) and
-cancelled within a second, and the scene guard cancels it when the scene closes;
-:func:`finish_many_on_nodes` stores the result with the same code as :func:`run_many_on_nodes`
-(:func:`_store_many`).
+- inputs: :func:`volume_to_sitk`, :func:`segment_to_sitk_mask` and, for several bones,
+  :func:`segments_to_sitk_labels` (the segments and their neighbours as one label image on the
+  CT grid, a value per segment; overlapping segments are refused, named);
+  :func:`segments_box_on_volume` (the segments' box on the volume's own grid);
+- outputs: :func:`update_model_node`, :func:`add_surface_as_segment`, the surfaces of a joint
+  run written back as segments that share one label map layer, so that no voxel belongs to
+  two of them (:func:`prepare_segments_without_overlap`, :func:`add_prepared_segments`),
+  :func:`add_intermediate_nodes`, :func:`read_model_file`;
+- nodes from images for tests and scripts: :func:`volume_node_from_sitk`,
+  :func:`segmentation_node_from_mask`, :func:`segmentation_node_from_labels`.
 """
 
 from __future__ import annotations
 
-import math
-import sys
-import threading
-import time
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -52,16 +39,8 @@ from vtk.util import numpy_support as ns
 
 import slicer
 
-from .errors import (
-    CancelledError,
-    EmptySegmentError,
-    InputError,
-    NoOverlapError,
-    VolumeTypeError,
-)
+from .errors import EmptySegmentError, InputError, NoOverlapError, VolumeTypeError
 from .mesh.surface import Surface, to_polydata
-from .params import Parameters
-from .report import summary_line, to_json
 
 _FLIP_XY = np.diag([-1.0, -1.0, 1.0])
 DISTANCE_ARRAY = "DistanceToConstraints"
@@ -128,7 +107,7 @@ def _oriented_image_matrix(image) -> np.ndarray:
     return _vtk_to_np_matrix(m)
 
 
-def _array_view(image) -> np.ndarray:
+def array_view(image) -> np.ndarray:
     """(k, j, i) numpy *view* of the scalars. Never written through for an input node's
     image: what leaves this module is copied (sitk.GetImageFromArray copies)."""
     dims = image.GetDimensions()
@@ -168,7 +147,7 @@ def sitk_index_to_ras(image: sitk.Image, ijk) -> np.ndarray:
 # inputs
 # ---------------------------------------------------------------------------------------
 
-def _check_volume_node(volumeNode):
+def check_volume_node(volumeNode):
     if volumeNode is None:
         raise InputError("No CT volume selected. Select the CT volume of the bone.")
     if volumeNode.IsA("vtkMRMLLabelMapVolumeNode"):
@@ -200,23 +179,26 @@ def volume_to_sitk(volumeNode) -> sitk.Image:
     The parent transform is applied: linear transforms exactly through the geometry, a
     non-linear one by resampling a copy into world space.
     """
-    image = _check_volume_node(volumeNode)
+    image, ijk_to_world = _image_in_world(volumeNode)
+    extent = image.GetExtent()
+    # GetImageFromArray copies the buffer: one copy of the voxels, not two
+    return _sitk_from_array(array_view(image), ijk_to_world, extent[0::2])
+
+
+def _image_in_world(volumeNode):
+    """(image, IJK->world-RAS matrix) of a checked volume node: its own image under a linear
+    transform chain, else a copy resampled into world space."""
+    image = check_volume_node(volumeNode)
     ijk_to_world = _ijk_to_world(volumeNode)
     if ijk_to_world is None:
         image = _hardened_oriented_image(volumeNode)
         ijk_to_world = _oriented_image_matrix(image)
-    extent = image.GetExtent()
-    # GetImageFromArray copies the buffer: one copy of the voxels, not two
-    return _sitk_from_array(_array_view(image), ijk_to_world, extent[0::2])
+    return image, ijk_to_world
 
 
 def _reference_geometry(volumeNode):
     """Geometry-only vtkOrientedImageData of the CT grid in world RAS."""
-    image = _check_volume_node(volumeNode)
-    ijk_to_world = _ijk_to_world(volumeNode)
-    if ijk_to_world is None:
-        image = _hardened_oriented_image(volumeNode)
-        ijk_to_world = _oriented_image_matrix(image)
+    image, ijk_to_world = _image_in_world(volumeNode)
     ref = slicer.vtkOrientedImageData()
     ref.SetExtent(image.GetExtent())
     ref.SetImageToWorldMatrix(_np_to_vtk_matrix(ijk_to_world))
@@ -296,7 +278,7 @@ def _segment_labelmap_world(segmentationNode, segmentId: str, reference):
     return labelmap, values[segmentId]
 
 
-def _check_segment(segmentationNode, segmentId):
+def check_segment(segmentationNode, segmentId):
     if segmentationNode is None:
         raise InputError("No segmentation selected. Select the segmentation holding the rough bone segment.")
     if not segmentId:
@@ -314,7 +296,7 @@ def segment_to_sitk_mask(segmentationNode, segmentId: str, referenceVolumeNode) 
     Works whatever the segmentation's own geometry (cropped extent, oversampled, other
     origin/direction, shared labelmap, closed-surface source, linear parent transforms).
     """
-    _check_segment(segmentationNode, segmentId)
+    check_segment(segmentationNode, segmentId)
     labels = segments_to_sitk_labels(segmentationNode, [segmentId], referenceVolumeNode)
     return sitk.Cast(sitk.NotEqual(labels.image, 0), sitk.sitkUInt8)
 
@@ -328,7 +310,7 @@ def _label_boxes(labelmap, labels) -> dict:
     wanted = sorted({int(v) for v in labels})
     if scalars is None or not wanted or wanted[-1] <= 0:
         return {v: None for v in wanted}
-    arr = _array_view(labelmap)
+    arr = array_view(labelmap)
     if arr.dtype.kind not in "iu" or arr.dtype.itemsize > 4:
         arr = arr.astype(np.int32)
     found = ndimage.find_objects(arr, max_label=wanted[-1])
@@ -401,13 +383,6 @@ def _boxes_meet(a, b, grow=(0, 0, 0)) -> bool:
 # several segments as one label map
 # ---------------------------------------------------------------------------------------
 
-# Neighbours farther than margin + segment_dilation + this from the bones to reconstruct are
-# left out: the pipeline crops to the targets + margin + band, and the band is at most
-# segment_dilation + 3 mm (segments beyond the crop cannot compete, and cannot block a run by
-# overlapping each other far away).
-NEIGHBOUR_REACH_SLACK_MM = 10.0
-
-
 @dataclass
 class SegmentLabels:
     """Segments of one segmentation as one label image on the CT grid.
@@ -464,7 +439,7 @@ def segments_to_sitk_labels(segmentationNode, segmentIds, referenceVolumeNode, *
     segmentIds = list(segmentIds)
     required = list(segmentIds if required is None else required)
     for segmentId in segmentIds + required:
-        _check_segment(segmentationNode, segmentId)
+        check_segment(segmentationNode, segmentId)
     if len(set(segmentIds)) != len(segmentIds):
         raise InputError("The same segment is asked for twice; give each segment once.")
     segmentation = segmentationNode.GetSegmentation()
@@ -527,7 +502,7 @@ def segments_to_sitk_labels(segmentationNode, segmentIds, referenceVolumeNode, *
             labelmap, crop, resampled, False, False, None, 0)
         if not ok or resampled.GetPointData().GetScalars() is None:
             continue
-        source = _array_view(resampled)
+        source = array_view(resampled)
         lut = np.zeros(max(max(mine.values()), int(source.max(initial=0))) + 1, dtype=dtype)
         for segmentId, label in mine.items():
             if label > 0:
@@ -583,19 +558,27 @@ def volume_node_from_sitk(scene, image: sitk.Image, name: str = "CT",
     return node
 
 
+def _segmentation_from_label_image(scene, labels: sitk.Image, name: str, what: str):
+    """A new segmentation node with the label image imported as Slicer imports a label map
+    volume (one segment per value, sharing one label map); the temporary label map node is
+    removed again."""
+    labelmap = volume_node_from_sitk(scene, labels, "BoneWatertight import", "vtkMRMLLabelMapVolumeNode")
+    segmentation = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
+    try:
+        if not slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(labelmap, segmentation):
+            raise InputError(f"The {what} could not be imported into a segmentation.")
+    finally:
+        scene.RemoveNode(labelmap)
+    return segmentation
+
+
 def segmentation_node_from_mask(scene, mask: sitk.Image, name: str = "Segmentation",
                                 segmentName: str = "bone"):
     """A new segmentation node with one segment (mask != 0) on the mask's own grid; returns
     ``(segmentationNode, segmentId)``. The scene's segmentations logic must be set up first
     (it registers the converter rules)."""
     binary = sitk.Cast(sitk.NotEqual(mask, 0), sitk.sitkUInt8)
-    labelmap = volume_node_from_sitk(scene, binary, "BoneWatertight import", "vtkMRMLLabelMapVolumeNode")
-    segmentation = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
-    try:
-        if not slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(labelmap, segmentation):
-            raise InputError("The mask could not be imported into a segmentation.")
-    finally:
-        scene.RemoveNode(labelmap)
+    segmentation = _segmentation_from_label_image(scene, binary, name, "mask")
     segmentId = segmentation.GetSegmentation().GetNthSegmentID(0)
     if segmentId is None:
         scene.RemoveNode(segmentation)
@@ -613,13 +596,7 @@ def segmentation_node_from_labels(scene, labels: sitk.Image, names: Optional[dic
     values = [int(v) for v in np.unique(sitk.GetArrayViewFromImage(labels)) if v != 0]
     if not values:
         raise EmptySegmentError("The label map is empty: nothing to import.")
-    labelmap = volume_node_from_sitk(scene, labels, "BoneWatertight import", "vtkMRMLLabelMapVolumeNode")
-    segmentation = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
-    try:
-        if not slicer.vtkSlicerSegmentationsModuleLogic.ImportLabelmapToSegmentationNode(labelmap, segmentation):
-            raise InputError("The label map could not be imported into a segmentation.")
-    finally:
-        scene.RemoveNode(labelmap)
+    segmentation = _segmentation_from_label_image(scene, labels, name, "label map")
     s = segmentation.GetSegmentation()
     ids = {}
     for n in range(s.GetNumberOfSegments()):
@@ -724,7 +701,7 @@ class PreparedSegments:
     resolvedVoxels: int = 0
 
 
-def _check_write_back(segmentationNode):
+def check_write_back(segmentationNode):
     """(reference geometry string or "", segmentation -> world matrix); InputError when the
     surfaces could not be written back (checked before a run: it would fail at its end)."""
     geometry = segmentationNode.GetSegmentation().GetConversionParameter(
@@ -740,7 +717,7 @@ def _check_write_back(segmentationNode):
 def _write_back_geometry(segmentationNode, volumeNode) -> str:
     """Serialized geometry (segmentation frame) of the written-back label maps: the
     segmentation's reference geometry, else the CT grid."""
-    geometry, seg_to_world = _check_write_back(segmentationNode)
+    geometry, seg_to_world = check_write_back(segmentationNode)
     if geometry:
         return geometry
     reference = _reference_geometry(volumeNode)
@@ -758,7 +735,7 @@ def _mask_on_grid(labelmap, label, grid_to_local: np.ndarray):
         return None, None
     if np.allclose(_oriented_image_matrix(labelmap), grid_to_local, atol=1e-6):
         e = labelmap.GetExtent()
-        arr = _array_view(labelmap)[box[4] - e[4]:box[5] - e[4] + 1, box[2] - e[2]:box[3] - e[2] + 1,
+        arr = array_view(labelmap)[box[4] - e[4]:box[5] - e[4] + 1, box[2] - e[2]:box[3] - e[2] + 1,
                                     box[0] - e[0]:box[1] - e[0] + 1]
         return arr == label, box
     big = 2 ** 30
@@ -769,7 +746,7 @@ def _mask_on_grid(labelmap, label, grid_to_local: np.ndarray):
     out = slicer.vtkOrientedImageData()
     slicer.vtkOrientedImageDataResample.ResampleOrientedImageToReferenceOrientedImage(
         labelmap, ref, out, False, False, None, 0)
-    return _array_view(out) == label, list(out.GetExtent())
+    return array_view(out) == label, list(out.GetExtent())
 
 
 def prepare_segments_without_overlap(segmentationNode, volumeNode, named_surfaces) -> PreparedSegments:
@@ -851,7 +828,7 @@ def prepare_segments_without_overlap(segmentationNode, volumeNode, named_surface
     image.SetExtent(union)
     image.SetImageToWorldMatrix(_np_to_vtk_matrix(grid))
     image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR if dtype == np.uint8 else vtk.VTK_UNSIGNED_SHORT, 1)
-    _array_view(image)[...] = merged
+    array_view(image)[...] = merged
     return PreparedSegments(labelmap=image, names=names, polys=polys, resolvedVoxels=int(len(contested)))
 
 
@@ -935,777 +912,103 @@ def add_intermediate_nodes(scene, intermediates: dict, prefix: str = "BoneWatert
     return nodes
 
 
-# ---------------------------------------------------------------------------------------
-# a responsive run: progress from the first second, cancel, scene-close guard
-# ---------------------------------------------------------------------------------------
-
-# Overall progress fraction where each step of the adapter's own first phase starts; the
-# pipeline's [0, 1] is mapped onto [PIPELINE_START, 1].
-EXPORT_VOLUME_START = 0.0
-EXPORT_SEGMENT_START = 0.01
-IMPORT_START = 0.02
-PIPELINE_START = 0.04
-# While open3d (and the pipeline's modules) are imported in a helper thread, the progress
-# callback is called at least this often (s): the panel keeps painting, Cancel is honoured.
-IMPORT_TICK_S = 0.1
-# The import's progress approaches its end with this time constant (s) (its length is unknown).
-IMPORT_TIME_CONSTANT_S = 3.0
 
 
-class RunGuard:
-    """Cancels a run whose scene closes or whose nodes leave the scene (SPEC 5: never write
-    into a closed scene or a removed node).
-
-    Observes the scene's StartCloseEvent and NodeRemovedEvent while the run lasts; the run's
-    progress calls :meth:`check`, and the adapter checks once more before it touches the
-    scene. Use as a context manager (observers are removed on exit).
-    """
-
-    def __init__(self, scene, nodes=(), onCancel=None):
-        self.scene = scene
-        self.nodes = [n for n in nodes if n is not None]
-        self.reason: Optional[str] = None
-        # called once when the run is to be cancelled (a child process is stopped at once)
-        self.onCancel = onCancel
-        self._tags = []
-        if scene is not None:
-            self._tags = [scene.AddObserver(slicer.vtkMRMLScene.StartCloseEvent, self._onClose),
-                          scene.AddObserver(slicer.vtkMRMLScene.NodeRemovedEvent, self._onNodeRemoved)]
-
-    def _onClose(self, caller=None, event=None):
-        if self.reason is None:
-            self.reason = "The scene was closed during the run"
-            self._notify()
-
-    def _onNodeRemoved(self, caller=None, event=None):
-        if self.reason is not None:
-            return
-        for node in self.nodes:
-            if not self.scene.IsNodePresent(node):
-                self.reason = f"'{node.GetName()}' was removed from the scene during the run"
-                self._notify()
-                return
-
-    def _notify(self):
-        if self.onCancel is not None:
-            self.onCancel()
-
-    def check(self) -> None:
-        """CancelledError if the scene closed or a node of the run was removed."""
-        if self.reason is not None:
-            raise CancelledError(f"{self.reason}; nothing was written.")
-
-    def close(self) -> None:
-        for tag in self._tags:
-            self.scene.RemoveObserver(tag)
-        self._tags = []
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-        return False
-
-
-class RunProgress:
-    """The progress callback of one MRML run: the adapter's first phase (export, imports),
-    then the pipeline's, on one [0, 1] scale; checks the :class:`RunGuard` at every call.
-
-    ``callback(fraction, message)`` returning False cancels (CancelledError), as in the library.
-    """
-
-    def __init__(self, callback=None, guard: Optional[RunGuard] = None,
-                 pipeline_start: float = PIPELINE_START):
-        self.callback = callback
-        self.guard = guard
-        self.pipeline_start = pipeline_start
-
-    def __call__(self, fraction: float, message: str = "") -> None:
-        if self.guard is not None:
-            self.guard.check()
-        if self.callback is not None and self.callback(fraction, message) is False:
-            raise CancelledError("Cancelled by the user; nothing was changed.")
-
-    def pipeline(self):
-        """The callback to hand to ``pipeline.reconstruct`` (its [0, 1] mapped onto ours)."""
-        start = self.pipeline_start
-
-        def report(fraction, message=""):
-            if self.guard is not None:
-                self.guard.check()
-            if self.callback is None:
-                return True
-            return self.callback(start + (1.0 - start) * fraction, message)
-        return report
-
-
-def load_pipeline(progress: Optional[RunProgress] = None, start: float = IMPORT_START,
-                  end: float = PIPELINE_START):
-    """Import the pipeline and open3d (seconds on first use) while reporting progress.
-
-    The import runs in a helper thread; this (the main) thread calls ``progress`` every
-    IMPORT_TICK_S, so the panel keeps painting and Cancel is honoured. Only imports happen in
-    the thread (no MRML, no Qt). Should the threaded import fail for another reason than a
-    missing package, it is retried here. Returns the pipeline module; DependencyError when
-    open3d is missing.
-    """
-    if progress is not None:
-        progress(start, "Loading open3d")
-    if "open3d" in sys.modules and f"{__package__}.pipeline" in sys.modules:
-        return sys.modules[f"{__package__}.pipeline"]
-    failure = []
-
-    def work():
-        try:
-            from . import pipeline
-            from .stages.poisson import import_open3d
-            import_open3d()
-            del pipeline
-        except BaseException as exc:  # handed to the main thread
-            failure.append(exc)
-
-    # not a daemon: after a Cancel the import finishes in the background, and an interpreter
-    # that exits meanwhile waits for it instead of tearing a half-loaded extension down
-    thread = threading.Thread(target=work, name="BoneWatertight import", daemon=False)
-    t0 = time.monotonic()
-    thread.start()
-    while thread.is_alive():
-        thread.join(IMPORT_TICK_S)
-        if thread.is_alive() and progress is not None:
-            elapsed = time.monotonic() - t0
-            progress(start + (end - start) * (1.0 - math.exp(-elapsed / IMPORT_TIME_CONSTANT_S)),
-                     "Loading open3d")
-    from .errors import DependencyError
-
-    if failure and not isinstance(failure[0], (ImportError, DependencyError)):
-        failure.clear()  # e.g. a library that insists on the main thread: import here instead
-    if failure:
-        raise failure[0]
-    from . import pipeline
-    from .stages.poisson import import_open3d
-    import_open3d()
-    return pipeline
-
-
-def export_inputs(volumeNode, segmentationNode, segmentId, progress: Optional[RunProgress] = None):
-    """(CT, mask) as SimpleITK images in LPS for one segment, reporting progress per step."""
-    if progress is not None:
-        progress(EXPORT_VOLUME_START, "Reading the CT volume")
-    ct = volume_to_sitk(volumeNode)
-    if progress is not None:
-        progress(EXPORT_SEGMENT_START, "Reading the segment")
-    mask = segment_to_sitk_mask(segmentationNode, segmentId, volumeNode)
-    return ct, mask
-
-
-def export_joint_inputs(volumeNode, segmentationNode, segmentIds, neighbourIds, params: Parameters,
-                        progress: Optional[RunProgress] = None):
-    """(CT, SegmentLabels) for a joint run: the bones and their neighbours as one label image on
-    the CT grid (neighbours out of the pipeline's reach are left out)."""
-    if progress is not None:
-        progress(EXPORT_VOLUME_START, "Reading the CT volume")
-    ct = volume_to_sitk(volumeNode)
-    message = "Reading the segment" if len(segmentIds) + len(neighbourIds) == 1 else "Reading the segments"
-    if progress is not None:
-        progress(EXPORT_SEGMENT_START, message)
-
-    def layer(fraction, text):
-        if progress is not None and fraction > 0:
-            progress(EXPORT_SEGMENT_START + (IMPORT_START - EXPORT_SEGMENT_START) * fraction, text)
-
-    labels = segments_to_sitk_labels(
-        segmentationNode, list(segmentIds) + list(neighbourIds), volumeNode, required=segmentIds,
-        reach_mm=params.margin + params.segment_dilation + NEIGHBOUR_REACH_SLACK_MM, progress=layer)
-    return ct, labels
+def remove_node(node) -> None:
+    """Take a node and its display node out of their scene (RemoveNode leaves a displayable
+    node's display node behind, orphaned); nothing for a node outside any scene."""
+    if node is None or node.GetScene() is None:
+        return
+    display = node.GetDisplayNode() if node.IsA("vtkMRMLDisplayableNode") else None
+    node.GetScene().RemoveNode(node)
+    if display is not None and display.GetScene() is not None:
+        display.GetScene().RemoveNode(display)
 
 
 # ---------------------------------------------------------------------------------------
-# the one call
+# a crop of the volume around segments (the panel's threshold preview)
 # ---------------------------------------------------------------------------------------
 
-def _as_parameters(params) -> Parameters:
-    if params is None:
-        return Parameters()
-    if isinstance(params, Parameters):
-        return params
-    if isinstance(params, dict):
-        return Parameters().replace(**params)
-    raise InputError(f"params must be a Parameters object or a dict, got {type(params).__name__}.")
-
-
-def summarize(result, name: str = "") -> str:
-    """The one summary line of a ReconstructionResult (panel result line, logs): vertices,
-    faces, checks, distance to the constraint points and the pipeline's total time."""
-    report = result.report
-    return summary_line(name, report.checks, report.distance_to_constraints_mm,
-                        report.timings.total, result.surface.n_vertices,
-                        result.surface.n_faces)
-
-
-def bone_summary(bone) -> str:
-    """One line per bone of a joint run: vertices, faces, checks, plausibility, cap, warnings."""
-    report = bone.report
-    text = summary_line(bone.name, report.checks, report.distance_to_constraints_mm, None,
-                        bone.surface.n_vertices, bone.surface.n_faces)
-    p = report.plausibility
-    if p is not None:
-        state = "plausible" if p.ok else "IMPLAUSIBLE"
-        text += (f"; {state}: {100 * p.segment_inside_fraction:.0f} % of the segment inside, volume "
-                 f"{p.volume_ratio:.2f} x the segment's, at most {p.max_excursion_mm:.1f} mm outside it")
-    cap = report.cap or {}
-    if cap.get("faces"):
-        text += f"; cut by the scan: capped, {cap.get('area_mm2', 0.0):.0f} mm² of cap"
-    n = len(report.warnings)
-    text += f"; {n} warning{'s' if n != 1 else ''}" if n else ""
-    return text
-
-
-def pair_summary(pair) -> str:
-    """One line per pair of bones: smallest gap, crossings, vertices inside the other."""
-    gap = "no vertex within 2 mm of the other" if pair.min_gap_mm is None else \
-        f"smallest gap {pair.min_gap_mm:.2f} mm"
-    inside = pair.a_inside_b + pair.b_inside_a
-    text = (f"{pair.a} / {pair.b}: {gap}, {pair.crossing_face_pairs} crossing face pairs, "
-            f"{inside} vertices inside the other")
-    if pair.contact_area_mm2:
-        text += f", {pair.contact_area_mm2:.0f} mm² within 1 mm"
-    return text
-
-
-def summarize_joint(joint) -> list:
-    """The lines of a joint run (panel result, logs): a header, one line per bone, one per pair
-    of bones, then every warning (on_implausible = warn)."""
-    report = joint.report
-    n = len(joint.bones)
-    header = f"{n} bone{'s' if n != 1 else ''} in {report.timings.total:.1f} s"
-    header += "; neighbours: " + (", ".join(report.neighbours) if report.neighbours else "none")
-    lines = [header] + [bone_summary(b) for b in joint.bones] + [pair_summary(p) for p in joint.pairs]
-    lines += [f"warning: {w}" for b in joint.bones for w in b.report.warnings]
-    return lines
-
-
-@dataclass
-class JointNodesResult:
-    """What :func:`run_many_on_nodes` made: one model node per bone (``modelNodes[i]`` for
-    ``segmentIds[i]``), the segments written back (``addedSegmentIds``, same order, empty unless
-    asked for), the other segments handed to the pipeline as neighbours
-    (``neighbourSegmentIds``; ``skippedSegments``: segment ID -> why one was not: empty, outside
-    the CT, out of reach), the intermediate-result nodes, and the pipeline's JointResult."""
-
-    modelNodes: list
-    segmentIds: list
-    result: object
-    addedSegmentIds: list = field(default_factory=list)
-    neighbourSegmentIds: list = field(default_factory=list)
-    skippedSegments: dict = field(default_factory=dict)
-    intermediateNodes: list = field(default_factory=list)
-
-    @property
-    def warnings(self) -> list:
-        return [w for b in self.result.bones for w in b.report.warnings]
-
-    def summaryLines(self) -> list:
-        return summarize_joint(self.result)
-
-
-def _per_segment(value, segmentIds, what: str) -> list:
-    """A list aligned with ``segmentIds`` from None, a sequence of that length or a dict."""
-    if value is None:
-        return [None] * len(segmentIds)
-    if isinstance(value, dict):
-        unknown = set(value) - set(segmentIds)
-        if unknown:
-            raise InputError(f"{what} given for segment(s) not reconstructed: {', '.join(sorted(unknown))}.")
-        return [value.get(s) for s in segmentIds]
-    value = list(value)
-    if len(value) != len(segmentIds):
-        raise InputError(f"{len(value)} {what} for {len(segmentIds)} segments: give one per segment "
-                         "(None: a new one).")
-    return value
-
-
-def _neighbour_ids(segmentationNode, segmentIds, neighbours) -> list:
-    segmentation = segmentationNode.GetSegmentation()
-    every = [segmentation.GetNthSegmentID(i) for i in range(segmentation.GetNumberOfSegments())]
-    if neighbours in (None, "auto", True):
-        # written back by an earlier run: a copy of its source segment, not another bone
-        return [s for s in every if s not in segmentIds
-                and not segmentation.GetSegment(s).HasTag(SOURCE_SEGMENT_TAG)]
-    if neighbours in ("none", False):
-        return []
-    if isinstance(neighbours, str):
-        raise InputError(f"neighbours must be 'auto', 'none' or a list of segment IDs, got '{neighbours}'.")
-    chosen = list(neighbours)
-    for segmentId in chosen:
-        _check_segment(segmentationNode, segmentId)
-    both = [s for s in chosen if s in segmentIds]
-    if both:
-        raise InputError(f"Segment(s) {', '.join(both)} are both reconstructed and neighbours: give "
-                         "each segment one role.")
-    return list(dict.fromkeys(chosen))
-
-
-@dataclass
-class _ManyRun:
-    """What a joint run on nodes was asked for, checked before any work (shared by
-    :func:`run_many_on_nodes` and :func:`start_many_on_nodes`)."""
-
-    scene: object
-    volumeNode: object
-    segmentationNode: object
-    segmentIds: list
-    parameters: Parameters
-    outputs: list
-    names: list
-    neighbourIds: list
-    addAsSegments: bool
-    showIntermediates: bool
-    colorByDistance: bool
-
-    @property
-    def guardedNodes(self) -> tuple:
-        """The nodes whose removal cancels the run: the inputs and the given output models."""
-        return (self.volumeNode, self.segmentationNode, *[n for n in self.outputs if n is not None])
-
-
-def _plan_many(volumeNode, segmentationNode, segmentIds, outputModelNodes, params, scene,
-               neighbours, addAsSegments, showIntermediates, colorByDistance, modelNames) -> _ManyRun:
-    """Every check of a joint run on nodes that needs no voxel (InputError before any work)."""
-    parameters = _as_parameters(params)
-    if showIntermediates and not parameters.keep_intermediates:
-        parameters = parameters.replace(keep_intermediates=True)
-    parameters.validate()
-    if isinstance(segmentIds, str):
-        segmentIds = [segmentIds]
-    segmentIds = list(segmentIds or [])
-    if scene is None:
-        scene = (volumeNode.GetScene() if volumeNode is not None else None) or (
-            segmentationNode.GetScene() if segmentationNode is not None else None)
-    if scene is None:
-        raise InputError("The input nodes are not in a scene.")
+def segment_id_list(segmentIds) -> list:
+    """A segment ID or a sequence of them, as a list ([] for none)."""
     if not segmentIds:
-        _check_segment(segmentationNode, "")
-    for segmentId in segmentIds:
-        _check_segment(segmentationNode, segmentId)
-    if len(set(segmentIds)) != len(segmentIds):
-        raise InputError("The same segment is asked for twice; give each segment once.")
-    outputs = _per_segment(outputModelNodes, segmentIds, "output models")
-    for node in outputs:
-        if node is not None and not node.IsA("vtkMRMLModelNode"):
-            raise InputError("The output node must be a model node.")
-    given = [n for n in outputs if n is not None]
-    if len({n.GetID() or id(n) for n in given}) != len(given):
-        raise InputError("The same output model is given for two segments; give each bone its own.")
-    names = _per_segment(modelNames, segmentIds, "model names")
-    neighbourIds = _neighbour_ids(segmentationNode, segmentIds, neighbours)
-    if addAsSegments:
-        _check_write_back(segmentationNode)
-    return _ManyRun(scene=scene, volumeNode=volumeNode, segmentationNode=segmentationNode,
-                    segmentIds=segmentIds, parameters=parameters, outputs=outputs, names=names,
-                    neighbourIds=neighbourIds, addAsSegments=bool(addAsSegments),
-                    showIntermediates=bool(showIntermediates), colorByDistance=bool(colorByDistance))
-
-
-def _competing(plan: _ManyRun, labels: SegmentLabels) -> list:
-    """The neighbour segments that made it into the label image (the others are empty, outside
-    the CT or out of reach)."""
-    return [s for s in plan.neighbourIds if s in labels.values]
-
-
-def _pipeline_targets(plan: _ManyRun, labels: SegmentLabels) -> tuple:
-    """(target label values, neighbours argument) of the pipeline call for this plan."""
-    return ([labels.values[s] for s in plan.segmentIds],
-            "auto" if _competing(plan, labels) else "none")
-
-
-def _store_many(plan: _ManyRun, guard: RunGuard, joint, labels: SegmentLabels) -> JointNodesResult:
-    """The success half of a joint run on nodes: ``joint`` (the pipeline's JointResult, or a
-    child run's ChildJoint with the same attributes) into models, report attributes and, on
-    request, segments and intermediate-result nodes."""
-    guard.check()  # the scene may have closed after the last progress report
-    segmentationNode = plan.segmentationNode
-    segmentation = segmentationNode.GetSegmentation()
-    segNames = [segmentation.GetSegment(s).GetName() or s for s in plan.segmentIds]
-    surfaces = [_with_distances(b) for b in joint.bones]
-    prepared = None
-    if plan.addAsSegments:
-        prepared = prepare_segments_without_overlap(
-            segmentationNode, plan.volumeNode, [(f"{n} watertight", s) for n, s in zip(segNames, surfaces)])
-        guard.check()
-    out = JointNodesResult(modelNodes=[], segmentIds=list(plan.segmentIds), result=joint,
-                           neighbourSegmentIds=_competing(plan, labels),
-                           skippedSegments=dict(labels.skipped))
-    _store_joint(plan.scene, out, segmentationNode, surfaces, plan.outputs, plan.names, segNames, prepared,
-                 showIntermediates=plan.showIntermediates, colorByDistance=plan.colorByDistance)
-    return out
-
-
-def run_many_on_nodes(volumeNode, segmentationNode, segmentIds, outputModelNodes=None, params=None,
-                      progress=None, scene=None, *, neighbours="auto", addAsSegments: bool = False,
-                      showIntermediates: bool = False, colorByDistance: bool = False,
-                      modelNames=None) -> JointNodesResult:
-    """Reconstruct several bones of one segmentation together from MRML nodes (SPEC §5b).
-
-    :param segmentIds: the segments to reconstruct (one model each, in this order).
-    :param outputModelNodes: models to replace on success: None (new ones named
-        "<segment> watertight"), a list aligned with ``segmentIds`` (None entries: new), or a
-        dict segment ID -> model node.
-    :param neighbours: "auto" (default: every other segment of the segmentation competes for
-        the joints, and no surface enters it; segments written back by an earlier run are
-        copies of their sources and left out), "none", or a list of segment IDs.
-    :param addAsSegments: also write the surfaces into the segmentation as new segments
-        "<segment> watertight", sharing one label map layer (no voxel in two of them).
-    :param showIntermediates, colorByDistance: as :func:`run_on_nodes`.
-    :param modelNames: names of new models (list aligned with segmentIds or dict).
-    :return: :class:`JointNodesResult`.
-    :raises InputError: bad inputs, overlapping segments (named). ReconstructionError and its
-        subclasses (PlausibilityError, SurfaceCheckError) when a bone fails; CancelledError.
-
-    The scene is only modified after every bone succeeded; a failed or cancelled run leaves it
-    as it was (also should writing the results fail half-way: what was written is undone).
-    Progress, Cancel and the scene-close guard as in :func:`run_on_nodes`. The same run in a
-    child process (the GUI thread stays free): :func:`start_many_on_nodes` /
-    :func:`finish_many_on_nodes`.
-    """
-    plan = _plan_many(volumeNode, segmentationNode, segmentIds, outputModelNodes, params, scene,
-                      neighbours, addAsSegments, showIntermediates, colorByDistance, modelNames)
-    with RunGuard(plan.scene, plan.guardedNodes) as guard:
-        report = RunProgress(progress, guard)
-        ct, labels = export_joint_inputs(volumeNode, segmentationNode, plan.segmentIds, plan.neighbourIds,
-                                         plan.parameters, report)
-        pipeline = load_pipeline(report)
-        targets, competing = _pipeline_targets(plan, labels)
-        joint = pipeline.reconstruct_many(ct, labels.image, targets, plan.parameters, report.pipeline(),
-                                          neighbours=competing, names=labels.names)
-        return _store_many(plan, guard, joint, labels)
-
-
-# ---------------------------------------------------------------------------------------
-# the same run in a child process (issue 13)
-# ---------------------------------------------------------------------------------------
-
-CHILD_STARTING_MESSAGE = "Starting the reconstruction process"
-
-
-class ChildNodesRun:
-    """A joint run on nodes whose reconstruction goes on in a child process
-    (:class:`BoneWatertightLib.app.child.ChildRun`), made by :func:`start_many_on_nodes`.
-
-    :meth:`poll` (from a GUI timer) never blocks: it returns ``(fraction, message, finished)``
-    on the run's one [0, 1] scale (export, then the child's progress from PIPELINE_START on).
-    :meth:`cancel` stops the child within a second. The scene guard (:class:`RunGuard`) stays
-    on while the child runs: closing the scene, or removing an input or a given output model,
-    cancels the child at once, and :func:`finish_many_on_nodes` then raises CancelledError.
-    ``childRun`` is the ChildRun (its ``progress_log``, ``output``, ``command``).
-    """
-
-    def __init__(self, plan: _ManyRun, guard: RunGuard, labels: SegmentLabels, childRun):
-        self.plan = plan
-        self.guard = guard
-        self.labels = labels
-        self.childRun = childRun
-        self.closed = False
-        guard.onCancel = self.cancel
-
-    def poll(self):
-        from .app.child import PollResult
-
-        if self.guard.reason is not None and not self.childRun.cancelled:
-            self.childRun.cancel()
-        state = self.childRun.poll()
-        if self.childRun.proc is None or not self.childRun.progress_log:
-            fraction = IMPORT_START
-            message = state.message or CHILD_STARTING_MESSAGE
-        else:
-            fraction = PIPELINE_START + (1.0 - PIPELINE_START) * state.fraction
-            message = state.message
-        return PollResult(fraction, message, state.finished)
-
-    @property
-    def finished(self) -> bool:
-        return self.childRun.finished
-
-    def cancel(self) -> None:
-        """Stop the child (returns within about a second); the run then ends cancelled."""
-        self.childRun.cancel()
-
-    def close(self) -> None:
-        """Stop the child if it still runs, remove its files, stop observing the scene."""
-        if not self.closed:
-            self.closed = True
-            try:
-                self.childRun.close()
-            finally:
-                self.guard.onCancel = None
-                self.guard.close()
-
-
-def start_many_on_nodes(volumeNode, segmentationNode, segmentIds, outputModelNodes=None, params=None,
-                        progress=None, scene=None, *, neighbours="auto", addAsSegments: bool = False,
-                        showIntermediates: bool = False, colorByDistance: bool = False,
-                        modelNames=None, python: Optional[str] = None, env: Optional[dict] = None,
-                        tempRoot: Optional[str] = None) -> ChildNodesRun:
-    """First half of :func:`run_many_on_nodes` with the reconstruction in a child process.
-
-    Checks the inputs, exports the CT and the segments (on this thread: MRML is read here
-    only; ``progress`` is called as in run_many_on_nodes during the export), starts the
-    child (``python``: the interpreter, default
-    :func:`BoneWatertightLib.app.child.find_python_slicer`; ``env``: its environment;
-    ``tempRoot``: where its private folder goes) and returns at once with a
-    :class:`ChildNodesRun`. Poll it from a timer; then :func:`finish_many_on_nodes`. The
-    arguments and errors before the run are those of run_many_on_nodes; the scene is not
-    touched.
-    """
-    from .app.child import ChildRun
-
-    plan = _plan_many(volumeNode, segmentationNode, segmentIds, outputModelNodes, params, scene,
-                      neighbours, addAsSegments, showIntermediates, colorByDistance, modelNames)
-    guard = RunGuard(plan.scene, plan.guardedNodes)
-    try:
-        report = RunProgress(progress, guard)
-        ct, labels = export_joint_inputs(volumeNode, segmentationNode, plan.segmentIds, plan.neighbourIds,
-                                         plan.parameters, report)
-        report(IMPORT_START, CHILD_STARTING_MESSAGE)
-        targets, competing = _pipeline_targets(plan, labels)
-        # the export made sure every target and neighbour in the label image has voxels
-        child = ChildRun(ct, labels.image, targets, labels.names, plan.parameters, neighbours=competing,
-                         python=python, env=env, temp_root=tempRoot, check_labels=False)
-        child.start()
-    except BaseException:
-        guard.close()
-        raise
-    return ChildNodesRun(plan, guard, labels, child)
-
-
-def finish_many_on_nodes(run: ChildNodesRun, timeout: Optional[float] = None) -> JointNodesResult:
-    """Second half: wait for the child (at once when :meth:`ChildNodesRun.poll` said finished;
-    ``timeout`` in s, else ChildRunError), then write the surfaces into the model nodes (and
-    segments, intermediate nodes) exactly as :func:`run_many_on_nodes` does, and return its
-    :class:`JointNodesResult` (``result`` is the child's ChildJoint: ``bones[i].report``,
-    ``pairs``, ``report``, typed). The child's error is raised as the library's typed error
-    (InputError, ReconstructionError, ...), CancelledError after a cancel, a closed scene or a
-    removed node; the scene is then unchanged. The child's files and the scene observers are
-    gone afterwards in every case."""
-    try:
-        run.guard.check()
-        joint = run.childRun.result(timeout)
-        return _store_many(run.plan, run.guard, joint, run.labels)
-    except BaseException:
-        if run.guard.reason is not None:
-            run.childRun.cancel()
-            run.guard.check()  # CancelledError naming why (the scene closed, a node was removed)
-        raise
-    finally:
-        run.close()
-
-
-def _with_distances(bone) -> Surface:
-    surface = bone.surface
-    if DISTANCE_ARRAY not in surface.point_data and bone.distance_to_constraints is not None:
-        d = np.asarray(bone.distance_to_constraints, dtype=np.float64)
-        if d.shape == (surface.n_vertices,):
-            surface = surface.copy()
-            surface.point_data[DISTANCE_ARRAY] = d
-    return surface
-
-
-class _SceneChanges:
-    """What a successful run writes, undone if writing fails half-way: nodes it added, models
-    it replaced (their mesh, report attributes and display settings), segments it added."""
-
-    _DISPLAY = ("ScalarVisibility", "ActiveScalarName", "ColorNodeID", "ScalarRangeFlag", "ScalarRange")
-
-    def __init__(self, scene, segmentationNode):
-        self.scene = scene
-        self.segmentationNode = segmentationNode
-        self.added = []
-        self.models = []
-        self.segments = []
-
-    def addNode(self, node):
-        self.added.append(node)
-        return node
-
-    def replacingModel(self, node):
-        display = node.GetDisplayNode()
-        state = None if display is None else {k: getattr(display, "Get" + k)() for k in self._DISPLAY}
-        attributes = {k: node.GetAttribute(k) for k in
-                      (REPORT_ATTRIBUTE, JOINT_REPORT_ATTRIBUTE, SOURCE_SEGMENT_ATTRIBUTE)}
-        self.models.append((node, node.GetPolyData(), display, state, attributes))
-
-    def undo(self):
-        segmentation = self.segmentationNode.GetSegmentation()
-        for segmentId in self.segments:
-            segmentation.RemoveSegment(segmentId)
-        for node in reversed(self.added):
-            if node.GetScene() is not None:
-                display = node.GetDisplayNode() if node.IsA("vtkMRMLDisplayableNode") else None
-                node.GetScene().RemoveNode(node)
-                if display is not None and display.GetScene() is not None:
-                    display.GetScene().RemoveNode(display)
-        for node, poly, display, state, attributes in self.models:
-            node.SetAndObservePolyData(poly)
-            for key, value in attributes.items():
-                if value is None:
-                    node.RemoveAttribute(key)
-                else:
-                    node.SetAttribute(key, value)
-            if display is not None:
-                if node.GetDisplayNode() is not display:
-                    created = node.GetDisplayNode()
-                    node.SetAndObserveDisplayNodeID(display.GetID())
-                    if created is not None and created.GetScene() is not None:
-                        created.GetScene().RemoveNode(created)
-                display.SetActiveScalar(state["ActiveScalarName"], vtk.vtkAssignAttribute.POINT_DATA)
-                if display.GetColorNodeID() != state["ColorNodeID"]:  # "" stands for none
-                    display.SetAndObserveColorNodeID(state["ColorNodeID"] or "")
-                display.SetScalarRangeFlag(state["ScalarRangeFlag"])
-                display.SetScalarRange(*state["ScalarRange"])
-                display.SetScalarVisibility(state["ScalarVisibility"])
-            elif node.GetDisplayNode() is not None:
-                created = node.GetDisplayNode()
-                node.SetAndObserveDisplayNodeID(None)
-                if created.GetScene() is not None:
-                    created.GetScene().RemoveNode(created)
-
-
-def _store_joint(scene, out: JointNodesResult, segmentationNode, surfaces, outputs, names, segNames,
-                 prepared, *, showIntermediates, colorByDistance):
-    """Success: only now touch the scene (models, report attributes, segments, intermediates);
-    should any of it fail, what was written is undone and the error propagates."""
-    joint = out.result
-    segmentation = segmentationNode.GetSegmentation()
-    changes = _SceneChanges(scene, segmentationNode)
-    jointJson = to_json(joint.report) if len(joint.bones) > 1 else None
-    try:
-        for segmentId, bone, surface, node, name, segName in zip(out.segmentIds, joint.bones, surfaces,
-                                                                 outputs, names, segNames):
-            color = segmentation.GetSegment(segmentId).GetColor()
-            if node is None:
-                node = changes.addNode(scene.AddNewNodeByClass(
-                    "vtkMRMLModelNode", name or scene.GenerateUniqueName(f"{segName} watertight")))
-                node.CreateDefaultDisplayNodes()
-                if node.GetDisplayNode() is not None:
-                    node.GetDisplayNode().SetColor(*color)
-            else:
-                changes.replacingModel(node)
-            update_model_node(node, surface, colorByDistance=colorByDistance)
-            node.SetAttribute(REPORT_ATTRIBUTE, to_json(bone.report))
-            node.SetAttribute(SOURCE_SEGMENT_ATTRIBUTE, _source_key(segmentationNode, segmentId))
-            if jointJson is not None:
-                node.SetAttribute(JOINT_REPORT_ATTRIBUTE, jointJson)
-            else:
-                node.RemoveAttribute(JOINT_REPORT_ATTRIBUTE)
-            out.modelNodes.append(node)
-        if prepared is not None:
-            colors = [segmentation.GetSegment(s).GetColor() for s in out.segmentIds]
-            changes.segments = add_prepared_segments(segmentationNode, prepared, colors, out.segmentIds)
-            out.addedSegmentIds = list(changes.segments)
-        if showIntermediates:
-            for bone, segName in zip(joint.bones, segNames):
-                if getattr(bone, "intermediates", None):
-                    nodes = add_intermediate_nodes(scene, bone.intermediates, prefix=f"BoneWatertight {segName}")
-                    for node in nodes:
-                        changes.addNode(node)
-                    out.intermediateNodes += nodes
-    except BaseException:
-        changes.undo()
-        out.modelNodes, out.addedSegmentIds, out.intermediateNodes = [], [], []
-        raise
-
-
-def _source_key(segmentationNode, segmentId) -> str:
-    return f"{segmentationNode.GetID()}/{segmentId}"
-
-
-def previous_output_models(scene, segmentationNode, segmentIds) -> dict:
-    """{segment ID: model node} of the models an earlier run made from these segments (their
-    SOURCE_SEGMENT_ATTRIBUTE), for a panel that replaces its previous results on a new run."""
-    wanted = {_source_key(segmentationNode, s): s for s in segmentIds}
-    found = {}
-    for n in range(scene.GetNumberOfNodesByClass("vtkMRMLModelNode")):
-        node = scene.GetNthNodeByClass(n, "vtkMRMLModelNode")
-        segmentId = wanted.get(node.GetAttribute(SOURCE_SEGMENT_ATTRIBUTE) or "")
-        if segmentId is not None and segmentId not in found:
-            found[segmentId] = node
-    return found
-
-
-def run_on_nodes(volumeNode, segmentationNode, segmentId, outputModelNode=None, params=None,
-                 progress=None, scene=None, *, addAsSegment: bool = False,
-                 showIntermediates: bool = False, colorByDistance: bool = False,
-                 modelName: Optional[str] = None, neighbours="auto"):
-    """Reconstruct the watertight surface of one bone from MRML nodes.
-
-    Returns ``(modelNode, result)`` (a ReconstructionResult). Every other segment of the
-    segmentation is a neighbour by default (``neighbours="auto"``: they compete for the joint
-    and the surface never enters them); ``neighbours="none"`` reconstructs the segment alone,
-    a list of segment IDs uses those. The scene is only modified after the pipeline succeeded;
-    any error (bad input, reconstruction failure, cancel) propagates with the scene unchanged.
-    ``progress(fraction, message)`` is called from the first moment (CT and segment export,
-    the open3d import) and throughout the pipeline; returning False cancels. Closing the
-    scene, or removing an input or the output node, during the run cancels it
-    (CancelledError) and nothing is written (:class:`RunGuard`).
-    """
-    _check_segment(segmentationNode, segmentId)
-    out = run_many_on_nodes(volumeNode, segmentationNode, [segmentId], [outputModelNode], params,
-                            progress, scene, neighbours=neighbours, addAsSegments=addAsSegment,
-                            showIntermediates=showIntermediates, colorByDistance=colorByDistance,
-                            modelNames=[modelName])
-    return out.modelNodes[0], out.result.bones[0]
-
-
-def segment_selection(segmentationNode, segmentIds=(), segmentId: str = "",
-                      pickFirst: bool = False) -> list:
-    """The segments a panel shows as chosen in ``segmentationNode``: the stored ``segmentIds``
-    that exist in it (in their order), else the one ``segmentId`` of an older parameter node,
-    else, when ``pickFirst`` (the segmentation was just chosen), its first segment, as the
-    single-segment selector does; [] without a segmentation."""
-    if segmentationNode is None:
         return []
-    segmentation = segmentationNode.GetSegmentation()
-    chosen = [s for s in dict.fromkeys(_segment_id_list(segmentIds)) if segmentation.GetSegment(s)]
-    if chosen:
-        return chosen
-    if segmentId and segmentation.GetSegment(segmentId) is not None:
-        return [segmentId]
-    if pickFirst and segmentation.GetNumberOfSegments():
-        return [segmentation.GetNthSegmentID(0)]
-    return []
-
-
-def _segments_mask(volumeNode, segmentationNode, segmentIds) -> sitk.Image:
     if isinstance(segmentIds, str):
-        segmentIds = [segmentIds]
-    labels = segments_to_sitk_labels(segmentationNode, list(segmentIds), volumeNode)
-    return sitk.Cast(sitk.NotEqual(labels.image, 0), sitk.sitkUInt8)
+        return [segmentIds]
+    return [s for s in segmentIds if s]
 
 
-def propose_thresholds(volumeNode, segmentationNode, segmentId, theta_max: float = 2500.0) -> dict:
-    """H0/HT proposal from the HU histogram in and around the segment (or the union of several
-    segments: a list of IDs), see autothreshold."""
-    from .stages.autothreshold import propose_thresholds as _propose
+def segments_box_on_volume(volumeNode, segmentationNode, segmentIds, margin_mm: float) -> list:
+    """IJK extent ``[i0, i1, j0, j1, k0, k1]`` of the volume's own grid that holds the
+    segments' voxels, grown by ``margin_mm`` and clipped to the volume: the whole volume
+    without segments, or under a non-linear transform (its IJK then has no world box).
 
-    ct = volume_to_sitk(volumeNode)
-    return _propose(ct, _segments_mask(volumeNode, segmentationNode, segmentId), theta_max=theta_max)
+    :raises EmptySegmentError: every segment is empty.
+    :raises NoOverlapError: no segment overlaps the volume.
+    """
+    image = check_volume_node(volumeNode)
+    extent = list(image.GetExtent())
+    ids = segment_id_list(segmentIds)
+    if segmentationNode is None or not ids:
+        return extent
+    ijk_to_world = _ijk_to_world(volumeNode)
+    if ijk_to_world is None:
+        return extent
+    for segmentId in ids:
+        check_segment(segmentationNode, segmentId)
+    reference = slicer.vtkOrientedImageData()
+    reference.SetExtent(extent)
+    reference.SetImageToWorldMatrix(_np_to_vtk_matrix(ijk_to_world))
+    spacing = np.linalg.norm(ijk_to_world[:3, :3], axis=0)
+    margin = np.ceil(float(margin_mm) / spacing).astype(int)
+    boxes = []
+    for labelmap, values in _labelmap_layers_world(segmentationNode, ids, reference):
+        found = _label_boxes(labelmap, values.values())
+        boxes += [_box_on_grid(found[int(v)], labelmap, ijk_to_world, extent, margin_voxels=margin)
+                  for v in values.values()]
+    if all(b is None for b in boxes):
+        raise EmptySegmentError("The segment is empty: nothing to preview.")
+    if not any(boxes):
+        raise NoOverlapError("The segment does not overlap the volume: nothing to preview.")
+    return _union_box(boxes)
 
 
-# ---------------------------------------------------------------------------------------
-# live threshold preview
-# ---------------------------------------------------------------------------------------
+def volume_crop(volumeNode, box) -> tuple:
+    """``(voxels, ijk_to_ras)``: a copy of the volume's voxels in the IJK extent ``box``, (k, j,
+    i), and the IJK->RAS matrix (4 x 4) of that crop as an image of its own (extent from 0)."""
+    image = check_volume_node(volumeNode)
+    full = image.GetExtent()
+    voxels = np.ascontiguousarray(array_view(image)[box[4] - full[4]:box[5] - full[4] + 1,
+                                                    box[2] - full[2]:box[3] - full[2] + 1,
+                                                    box[0] - full[0]:box[1] - full[0] + 1])
+    m = vtk.vtkMatrix4x4()
+    volumeNode.GetIJKToRASMatrix(m)
+    ijk_to_ras = _vtk_to_np_matrix(m)
+    ijk_to_ras[:3, 3] = (ijk_to_ras @ np.array([box[0], box[2], box[4], 1.0]))[:3]
+    return voxels, ijk_to_ras
 
-# Labels of the preview label map and their colours (the panel's tooltip names them).
-PREVIEW_TARGET_LABEL = 1   # [HT, H0): reached only by the target window
-PREVIEW_INITIAL_LABEL = 2  # [H0, theta_max]: the initial window
-PREVIEW_COLORS = {
-    PREVIEW_TARGET_LABEL: ("green", "[HT, H0)", (0.20, 0.80, 0.20)),
-    PREVIEW_INITIAL_LABEL: ("yellow", "[H0, theta max]", (1.00, 0.90, 0.10)),
-}
-PREVIEW_MARGIN_MM = 5.0
+
+def set_labelmap_buffer(labelmapNode, shape_kji, ijk_to_ras: np.ndarray, parentTransformId=None) -> np.ndarray:
+    """Give a label map node a new zeroed uint8 image of ``shape_kji`` with that IJK->RAS
+    matrix and parent transform; returns a writable (k, j, i) view of the node's buffer (write
+    into it, then :func:`mark_modified`)."""
+    labelmapNode.SetIJKToRASMatrix(_np_to_vtk_matrix(ijk_to_ras))
+    labelmapNode.SetAndObserveTransformNodeID(parentTransformId)
+    labels = vtk.vtkImageData()
+    labels.SetDimensions(shape_kji[2], shape_kji[1], shape_kji[0])
+    labels.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
+    labelmapNode.SetAndObserveImageData(labels)
+    return array_view(labels)
 
 
-def _transform_key(node):
+def mark_modified(volumeNode) -> None:
+    """Tell the views that the voxels of the node's image changed (written through a view)."""
+    image = volumeNode.GetImageData()
+    image.GetPointData().GetScalars().Modified()
+    image.Modified()
+
+
+def _world_frame_key(node):
     """What the node's world frame depends on: its world matrix, or the MTimes of a
     non-linear parent chain."""
     world = _to_world_matrix(node)
@@ -1718,26 +1021,17 @@ def _transform_key(node):
     return tuple(key)
 
 
-def _segment_id_list(segmentIds) -> list:
-    """A segment ID or a sequence of them, as a list ([] for none)."""
-    if not segmentIds:
-        return []
-    if isinstance(segmentIds, str):
-        return [segmentIds]
-    return [s for s in segmentIds if s]
-
-
-def _preview_source_key(volumeNode, segmentationNode, segmentIds):
-    """Changes whenever the voxels, the geometry or the segments that the preview's cached
-    crop was made from change (MTimes are cheap to read: microseconds)."""
+def inputs_state_key(volumeNode, segmentationNode, segmentIds) -> tuple:
+    """A key that changes whenever the volume's voxels or geometry, or the segments'
+    voxels or geometry, change (MTimes are cheap to read: microseconds), for caches of a crop."""
     image = volumeNode.GetImageData()
     key = [volumeNode.GetID(), volumeNode.GetMTime(), image.GetMTime() if image is not None else None,
-           _transform_key(volumeNode)]
-    ids = _segment_id_list(segmentIds)
+           _world_frame_key(volumeNode)]
+    ids = segment_id_list(segmentIds)
     if segmentationNode is not None and ids:
         segmentation = segmentationNode.GetSegmentation()
         key += [segmentationNode.GetID(), segmentationNode.GetMTime(), segmentation.GetMTime(),
-                _transform_key(segmentationNode)]
+                _world_frame_key(segmentationNode)]
         for segmentId in ids:
             segment = segmentation.GetSegment(segmentId)
             source = (segment.GetRepresentation(segmentation.GetSourceRepresentationName())
@@ -1745,155 +1039,3 @@ def _preview_source_key(volumeNode, segmentationNode, segmentIds):
             key += [segmentId, segment.GetMTime() if segment is not None else None,
                     source.GetMTime() if source is not None else None]
     return tuple(key)
-
-
-class ThresholdPreview:
-    """Live preview of the two threshold windows as a label map in the slice views.
-
-    The voxels of the CT around the segment (its box plus ``margin_mm``, on the CT's own grid)
-    are copied once into a cache; each :meth:`update` only thresholds that crop in place into
-    the label map's buffer (a few ms for a femur-sized box, see Testing/bench_slicer.py). The
-    cache is rebuilt when the volume, its geometry or the segment change. Label
-    PREVIEW_TARGET_LABEL = [HT, H0) is green, PREVIEW_INITIAL_LABEL = [H0, theta_max] yellow,
-    from a colour table of its own. The label map, its display node and the colour table are
-    hidden from editors and never saved with the scene; :meth:`remove` takes them out.
-    """
-
-    def __init__(self, scene, margin_mm: float = PREVIEW_MARGIN_MM, name: str = "BoneWatertight preview"):
-        self.scene = scene
-        self.margin_mm = float(margin_mm)
-        self.name = name
-        self.labelmapNode = None
-        self.colorNode = None
-        self.cacheBuilds = 0
-        self._key = None
-        self._values = None
-        self._labels = None
-        self._scratch = None
-
-    # -- cache
-
-    def invalidate(self) -> None:
-        self._key = None
-        self._values = self._labels = self._scratch = None
-
-    def _crop_box(self, volumeNode, segmentationNode, segmentIds, image):
-        """IJK extent of the volume (its own grid) to preview: the segments' box + margin."""
-        extent = list(image.GetExtent())
-        ids = _segment_id_list(segmentIds)
-        if segmentationNode is None or not ids:
-            return extent
-        ijk_to_world = _ijk_to_world(volumeNode)
-        if ijk_to_world is None:  # non-linear transform: the volume's IJK has no world box
-            return extent
-        for segmentId in ids:
-            _check_segment(segmentationNode, segmentId)
-        reference = slicer.vtkOrientedImageData()
-        reference.SetExtent(extent)
-        reference.SetImageToWorldMatrix(_np_to_vtk_matrix(ijk_to_world))
-        spacing = np.linalg.norm(ijk_to_world[:3, :3], axis=0)
-        margin = np.ceil(self.margin_mm / spacing).astype(int)
-        boxes = []
-        for labelmap, values in _labelmap_layers_world(segmentationNode, ids, reference):
-            found = _label_boxes(labelmap, values.values())
-            boxes += [_box_on_grid(found[int(v)], labelmap, ijk_to_world, extent, margin_voxels=margin)
-                      for v in values.values()]
-        if all(b is None for b in boxes):
-            raise EmptySegmentError("The segment is empty: nothing to preview.")
-        if not any(boxes):
-            raise NoOverlapError("The segment does not overlap the volume: nothing to preview.")
-        return _union_box(boxes)
-
-    def _build(self, volumeNode, segmentationNode, segmentId, key) -> None:
-        image = _check_volume_node(volumeNode)
-        box = self._crop_box(volumeNode, segmentationNode, segmentId, image)
-        full = image.GetExtent()
-        view = _array_view(image)
-        values = np.ascontiguousarray(view[box[4] - full[4]:box[5] - full[4] + 1,
-                                           box[2] - full[2]:box[3] - full[2] + 1,
-                                           box[0] - full[0]:box[1] - full[0] + 1])
-        node = self._ensure_nodes()
-        # the crop's own image (extent from 0) with the volume's matrix shifted to its corner
-        m = vtk.vtkMatrix4x4()
-        volumeNode.GetIJKToRASMatrix(m)
-        ijk_to_ras = _vtk_to_np_matrix(m)
-        ijk_to_ras[:3, 3] = (ijk_to_ras @ np.array([box[0], box[2], box[4], 1.0]))[:3]
-        node.SetIJKToRASMatrix(_np_to_vtk_matrix(ijk_to_ras))
-        node.SetAndObserveTransformNodeID(volumeNode.GetTransformNodeID())
-        labels = vtk.vtkImageData()
-        labels.SetDimensions(values.shape[2], values.shape[1], values.shape[0])
-        labels.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
-        node.SetAndObserveImageData(labels)
-        self._values = values
-        self._labels = _array_view(labels)  # writes go straight into the node's buffer
-        self._scratch = (np.empty(values.shape, bool), np.empty(values.shape, bool))
-        self._key = key
-        self.cacheBuilds += 1
-
-    def _ensure_nodes(self):
-        scene = self.scene
-        if self.colorNode is None or self.colorNode.GetScene() is not scene:
-            color = slicer.vtkMRMLColorTableNode()
-            color.SetName(scene.GenerateUniqueName(f"{self.name} colours"))
-            color.SetTypeToUser()
-            color.SetNumberOfColors(1 + max(PREVIEW_COLORS))
-            color.SetColor(0, "background", 0.0, 0.0, 0.0, 0.0)
-            for label, (_colour, window, rgb) in PREVIEW_COLORS.items():
-                color.SetColor(label, window, *rgb, 1.0)
-            color.SetHideFromEditors(True)
-            color.SetSaveWithScene(False)
-            scene.AddNode(color)
-            self.colorNode = color
-        if self.labelmapNode is None or self.labelmapNode.GetScene() is not scene:
-            node = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", scene.GenerateUniqueName(self.name))
-            node.SetHideFromEditors(True)
-            node.SetSaveWithScene(False)
-            self.labelmapNode = node
-        display = self.labelmapNode.GetDisplayNode()
-        if display is None:
-            # slice views draw no volume that lacks a display node (AddNewNodeByClass creates
-            # none); made here, not by CreateDefaultDisplayNodes, so it never refers to the
-            # default label colours (label 1 blue, 2 peach)
-            display = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeDisplayNode")
-            display.SetHideFromEditors(True)
-            display.SetSaveWithScene(False)
-            self.labelmapNode.SetAndObserveDisplayNodeID(display.GetID())
-        if display.GetColorNodeID() != self.colorNode.GetID():
-            display.SetAndObserveColorNodeID(self.colorNode.GetID())
-        return self.labelmapNode
-
-    # -- the per-drag-step work
-
-    def update(self, volumeNode, segmentationNode, segmentId, h0: float, ht: float,
-               theta_max: float):
-        """Show [HT, H0) and [H0, theta_max] around the segment (a segment ID, or a list of
-        them: around all of them); returns the label map node."""
-        key = _preview_source_key(volumeNode, segmentationNode, segmentId)
-        if key != self._key or self.labelmapNode is None or self.labelmapNode.GetScene() is not self.scene:
-            self._build(volumeNode, segmentationNode, segmentId, key)
-        v, labels = self._values, self._labels
-        below_top, initial = self._scratch
-        target = labels.view(bool)
-        np.less_equal(v, theta_max, out=below_top)
-        np.greater_equal(v, ht, out=target)
-        np.logical_and(target, below_top, out=target)        # [HT, theta_max] -> 1
-        np.greater_equal(v, h0, out=initial)
-        np.logical_and(initial, below_top, out=initial)      # [H0, theta_max]
-        np.add(labels, initial.view(np.uint8), out=labels)   # -> 2
-        image = self.labelmapNode.GetImageData()
-        image.GetPointData().GetScalars().Modified()
-        image.Modified()
-        return self.labelmapNode
-
-    def remove(self) -> None:
-        """Take the label map, its display node and the colour table out of the scene."""
-        for node in (self.labelmapNode, self.colorNode):
-            if node is None or node.GetScene() is None:
-                continue
-            display = node.GetDisplayNode() if node.IsA("vtkMRMLDisplayableNode") else None
-            node.GetScene().RemoveNode(node)
-            if display is not None and display.GetScene() is not None:
-                display.GetScene().RemoveNode(display)  # RemoveNode leaves it orphaned
-        self.labelmapNode = self.colorNode = None
-        self.invalidate()
-

@@ -4,8 +4,8 @@ Each field of :class:`Parameters` carries a :class:`ParamSpec` (type, default, i
 unit, what "auto" means, label, help text, pipeline stage, panel section). Everything else is
 derived from it: :meth:`Parameters.validate`, the command-line options and their ``--help``
 (:mod:`BoneWatertightLib.app.options`), the Slicer parameter node's fields with ``WithinRange``
-and the panel's widget bounds, tooltips and labels (``BoneWatertight/BoneWatertight.py``), the
-Slicer batch script's options and the presets.
+and the panel's widget bounds, tooltips and labels (``BoneWatertight/BoneWatertight.py``) and
+the Slicer batch script's options.
 
 Units: HU for thresholds, millimetres for lengths. ``None`` means "choose automatically" (only
 for parameters whose spec has an ``auto`` text). Adding a parameter is one declaration::
@@ -25,8 +25,12 @@ from typing import Any, Optional
 
 from .errors import InputError
 
-# Pipeline stages, in order (the CLI groups its options by them).
-STAGES = {
+# The groups of parameters, by the part of the method each configures, in the paper's order
+# (the command line's --help groups its options by them). Not the run's progress table,
+# pipeline.STAGES, whose spans follow a several-bone run (the shared steps apart, the per-bone
+# threshold, visible points and Poisson as one span); it cannot be derived from that one, as
+# this module must stay importable without the pipeline (the Slicer panel and --help read it).
+PARAMETER_GROUPS = {
     "prepare": "crop + resample (paper 2.1, 3.1)",
     "filter": "hybrid filter (paper 2.1)",
     "threshold": "two-step threshold (paper 2.1)",
@@ -184,7 +188,7 @@ def _np_bool():
 
 def param(default, stage: str, panel: Optional[str], *, label: str, help: str, **spec):
     """Declare one parameter: a dataclass field whose metadata is its spec (see ParamSpec)."""
-    if stage not in STAGES:
+    if stage not in PARAMETER_GROUPS:
         raise ValueError(f"unknown stage {stage!r}")
     if panel is not None and panel not in PANEL_SECTIONS:
         raise ValueError(f"unknown panel section {panel!r}")
@@ -408,30 +412,12 @@ SCHEMA: dict = _build_schema(Parameters)
 """Parameter name -> :class:`ParamSpec`, in declaration (pipeline) order."""
 
 
-PRESETS = {
-    # Paper §3. Thresholds are estimated per case (h0/ht auto): the paper's fixed values
-    # (femur 300/150, hip 350/150) hold for thin-slice CT only; give them explicitly if wanted.
-    "femur": dict(theta_max=2500.0, max_erosions=2),
-    "hip": dict(theta_max=2500.0, max_erosions=3),
-    # Short bones / vertebrae: narrow gaps, so erode more and look from more directions.
-    "vertebra": dict(theta_max=2500.0, max_erosions=3, views=18),
-}
-"""Each preset sets only its own fields (morphology, views); the rest keep their value."""
-
-
-def preset_name(name: str) -> str:
-    """Canonical preset name; InputError for an unknown one."""
-    key = str(name).lower().replace("short_bone", "vertebra").replace("short bone", "vertebra")
-    if key not in PRESETS:
-        raise InputError(f"Unknown preset '{name}'. Choose one of: {', '.join(PRESETS)}.")
-    return key
-
-
-def apply_preset(params: Parameters, name: str) -> Parameters:
-    """``params`` with the preset's own fields set (every other field unchanged)."""
-    return params.replace(**PRESETS[preset_name(name)])
-
-
-def preset(name: str, **overrides) -> Parameters:
-    """Parameters of a named preset ('femur', 'hip', 'vertebra') on the defaults, with overrides."""
-    return apply_preset(Parameters(), name).replace(**overrides)
+# There are no presets. The femur / hip / vertebra presets set only theta_max (the default),
+# the erosion count m (reported, it does not shape the surface) and the number of views, and the
+# README's H0/HT per bone were never set: measured (issue 20), --preset femur and hip gave the
+# defaults' surface bit for bit on the femur phantom, vertebra 2-4 vertices more of 46 k on the
+# bundled L3/L4 (volume within 0.02 %), and the paper's fixed 300/150 (350/150) HU instead of
+# the per-case thresholds gave p95 0.144 / 0.141 mm vs 0.144 mm and max 0.70 / 1.08 mm vs 0.62 mm.
+PRESETS_REMOVED = ("Parameter presets were removed: each gave the same surface as the defaults, "
+                   "which estimate H0 and HT per case. Leave the preset out, or give the "
+                   "parameters themselves (e.g. h0=300, ht=150).")

@@ -13,9 +13,11 @@
 * :func:`segment_closed_surface` - the segment itself through Slicer's closed-surface
   conversion: what a user gets today from an AI segment (one label of a label map).
 
-The first three work on the pipeline's working grid (:func:`prepare.prepare`: crop to the
-segment + margin, B-spline resample to the isotropic spacing), so differences come from the
-method, not the grid. :func:`segment_closed_surface` works on the label map's own grid and
+The first three work on the pipeline's working grid (:func:`prepare.prepare_labels`, as the
+pipeline calls it at the default segment_dilation: crop to the segment + margin + band,
+B-spline resample to the isotropic spacing), so differences come from the method, not the
+grid; a segment touching the CT's border is refused (BorderError), as plain thresholding has
+no cap. :func:`segment_closed_surface` works on the label map's own grid and
 needs nothing of the pipeline. Each returns a :class:`Surface` in physical LPS with faces
 oriented so the enclosed volume is positive, and never checks topology: the benchmark
 reports the checks of every method.
@@ -34,7 +36,7 @@ from BoneWatertightLib.mesh import Surface, enclosed_volume, from_polydata
 # them, so that segment_closed_surface (and importing this module) does not depend on them.
 if TYPE_CHECKING:  # pragma: no cover
     from BoneWatertightLib.params import Parameters
-    from BoneWatertightLib.stages.prepare import Prepared
+    from BoneWatertightLib.stages.prepare import PreparedLabels
 
 # Slicer's default closed-surface smoothing factor and the iteration count it uses.
 SLICER_SMOOTHING_FACTOR = 0.5
@@ -50,15 +52,24 @@ def _params(params: Optional["Parameters"]) -> "Parameters":
     return (params or Parameters()).validate()
 
 
-def _prepared(ct, mask, params: Optional["Parameters"]) -> "Prepared":
-    from BoneWatertightLib.stages.prepare import prepare
+def _prepared(ct, mask, params: Optional["Parameters"]) -> "PreparedLabels":
+    """The working grid of the mask (non-zero = the bone) as label 1."""
+    import SimpleITK as sitk
+
+    from BoneWatertightLib.stages.prepare import prepare_labels
 
     params = _params(params)
-    return prepare(ct, mask, spacing=params.spacing, margin=params.margin,
-                   max_memory_gb=params.max_memory_gb)
+    labels = sitk.Cast(sitk.NotEqual(mask, 0), sitk.sitkUInt8)
+    return prepare_labels(ct, labels, [1], spacing=params.spacing, margin=params.margin,
+                          max_memory_gb=params.max_memory_gb, at_border="error")
 
 
-def threshold_mask(prep: Prepared, params: Parameters) -> np.ndarray:
+def _segment(prep: PreparedLabels) -> np.ndarray:
+    """The rough segment on the working grid, (z, y, x) bool."""
+    return prep.labels == prep.targets[0]
+
+
+def threshold_mask(prep: PreparedLabels, params: Parameters) -> np.ndarray:
     """Voxels in [HT, theta_max] in the connected components that touch the rough segment
     dilated by params.segment_dilation (so a missing chunk of the segment is still found).
     HT = params.ht, or :data:`PAPER_HT` when it is None (the pipeline's "auto")."""
@@ -66,7 +77,7 @@ def threshold_mask(prep: Prepared, params: Parameters) -> np.ndarray:
     ht = PAPER_HT if params.ht is None else params.ht
     m = (ct >= ht) & (ct <= params.theta_max)
     r = max(1, int(round(params.segment_dilation / prep.grid.spacing)))
-    near = _dilate_mm(prep.segment, r)
+    near = _dilate_mm(_segment(prep), r)
     lab, n = ndimage.label(m)
     if n == 0:
         return m
@@ -86,7 +97,7 @@ def _erode_mm(mask: np.ndarray, r_vox: float) -> np.ndarray:
     return ndimage.distance_transform_edt(mask) > r_vox
 
 
-def _to_surface(poly, prep: Prepared) -> Surface:
+def _to_surface(poly, prep: PreparedLabels) -> Surface:
     s = from_polydata(poly)
     if not s.n_faces:
         return Surface(np.zeros((0, 3)), np.zeros((0, 3), np.int64), "LPS")

@@ -232,7 +232,7 @@ def run_real(results, args, save, log):
             log("[real] refusal test: --h0 900 --ht 700 on vertebrae_L4 ...")
             out = os.path.join(rdir, "L4.vtp")
             cli = _cli_run(os.path.join(data, PELVIS, "ct.nrrd"), seg, "vertebrae_L4", out,
-                           os.path.join(rdir, "L4.json"), _NoPreset(args), extra=["--h0", "900", "--ht", "700"])
+                           os.path.join(rdir, "L4.json"), _AtDefaults(args), extra=["--h0", "900", "--ht", "700"])
             real["refusal_L4"] = {"exit_code": cli.get("exit_code"), "file_written": cli.get("out_exists"),
                                   "message": short(cli.get("log"), 600), "seconds": cli.get("seconds"),
                                   "argv": cli.get("argv")}
@@ -241,13 +241,12 @@ def run_real(results, args, save, log):
             save(results, args)
 
 
-class _NoPreset:
-    """The benchmark's arguments without --preset / --spacing (the refusal test uses the CLI's
-    own defaults and only the thresholds it names)."""
+class _AtDefaults:
+    """The benchmark's arguments without --spacing (the refusal test uses the CLI's own
+    defaults and only the thresholds it names)."""
 
     def __init__(self, args):
         self.__dict__.update(vars(args))
-        self.preset = None
         self.spacing = None
 
 

@@ -5,11 +5,11 @@
   python Testing/bench_slicer.py           # both
 
 ``preview``: a 512 x 512 x 500 int16 CT (0.8 x 0.8 x 1.0 mm) with a femur-sized bone and its
-rough segment (a coarse label map) as MRML nodes; BoneWatertightLib.mrml.ThresholdPreview as the
+rough segment (a coarse label map) as MRML nodes; BoneWatertightLib.app.preview.ThresholdPreview as the
 panel uses it while a threshold slider is dragged: the first update (builds the crop cache), then
 one update per drag step. Target: <= 50 ms per update.
 
-``progress``: Testing/phantoms.py make_phantom("femur") as MRML nodes, mrml.run_on_nodes at the
+``progress``: Testing/phantoms.py make_phantom("femur") as MRML nodes, nodes.run_on_nodes at the
 library's defaults with a progress callback that records the time of every call, in a fresh
 process (the open3d import is part of the run, as on a first Apply). Prints the longest gaps
 between successive callbacks and the messages on both sides, i.e. where a frozen panel would be
@@ -46,6 +46,7 @@ def bench_preview(steps: int = 60) -> dict:
     import SimpleITK as sitk
 
     from BoneWatertightLib import mrml
+    from BoneWatertightLib.app.preview import ThresholdPreview
 
     scene = _scene()
     size = (512, 512, 500)  # i, j, k
@@ -79,7 +80,7 @@ def bench_preview(steps: int = 60) -> dict:
     segmentation, segmentId = mrml.segmentation_node_from_mask(scene, mask, segmentName="femur")
     build = time.perf_counter() - t0
 
-    preview = mrml.ThresholdPreview(scene)
+    preview = ThresholdPreview(scene)
     t0 = time.perf_counter()
     preview.update(volume, segmentation, segmentId, 300.0, 150.0, 2500.0)
     first = time.perf_counter() - t0
@@ -111,6 +112,7 @@ def bench_progress(case: str = "femur", overrides: dict | None = None) -> dict:
     t0 = time.perf_counter()
     phantom = make_phantom(case)
     from BoneWatertightLib import mrml
+    from BoneWatertightLib.app import nodes
 
     scene = _scene()
     volume = mrml.volume_node_from_sitk(scene, phantom.ct, f"{case} CT")
@@ -124,7 +126,7 @@ def bench_progress(case: str = "femur", overrides: dict | None = None) -> dict:
         return True
 
     start = time.perf_counter()
-    model, result = mrml.run_on_nodes(volume, segmentation, segmentId, params=overrides or None,
+    model, result = nodes.run_on_nodes(volume, segmentation, segmentId, params=overrides or None,
                                       progress=progress)
     end = time.perf_counter()
     times = [start] + [s[0] for s in stamps] + [end]
@@ -140,7 +142,7 @@ def bench_progress(case: str = "femur", overrides: dict | None = None) -> dict:
     for n in order[:8]:
         print(f"  gap {gaps[n]:6.2f} s  between  {labels[n]}  and  {labels[n + 1]}")
     # the adapter's own first phase (export, open3d import): up to its last report
-    last_own = max((n for n, s in enumerate(stamps) if s[1] < mrml.PIPELINE_START), default=-1)
+    last_own = max((n for n, s in enumerate(stamps) if s[1] < nodes.PIPELINE_START), default=-1)
     own = gaps[:last_own + 1]
     if len(own):
         print(f"progress: first phase (mrml: CT/segment export, open3d import) "

@@ -139,12 +139,11 @@ def write_image(img, path):
 
 
 def params_dict(args, **changes):
-    """The pipeline's parameters for the benchmark: the defaults (or --preset / --spacing),
+    """The pipeline's parameters for the benchmark: the defaults (or --spacing),
     on_implausible = warn, then ``changes``."""
-    from BoneWatertightLib.params import Parameters, preset
+    from BoneWatertightLib.params import Parameters
 
-    p = preset(args.preset) if args.preset else Parameters()
-    p = p.replace(on_implausible="warn")
+    p = Parameters(on_implausible="warn")
     if args.spacing is not None:
         p = p.replace(spacing=args.spacing)
     return p.replace(**changes).to_dict()
@@ -454,8 +453,6 @@ def _slicer_like(ct_path, mask_path, args):
 def _cli_run(ct_path, seg_path, label, out_path, report_path, args, extra=(), repeat=1):
     argv = ["--ct", ct_path, "--seg", seg_path, "--label", str(label), "--out", out_path,
             "--report", report_path, "--quiet"] + list(extra)
-    if args.preset:
-        argv += ["--preset", args.preset]
     if args.spacing is not None:
         argv += ["--spacing", str(args.spacing)]
     for p in (out_path, report_path):
@@ -1138,7 +1135,6 @@ def main(argv=None):
     ap.add_argument("--methods", default=None, help="only these rows (keys: full, m0, m0_deform, m0_refine, "
                     "threshold_mc, direct_poisson, closing_wrap, segment, pair, alone_nbr, alone)")
     ap.add_argument("--labels", default=None, help="joint label kinds (rough, ai, ai_steal3)")
-    ap.add_argument("--preset", default=None, help="a pipeline preset instead of the plain defaults")
     ap.add_argument("--spacing", type=float, default=None, help="resample spacing (default: auto)")
     ap.add_argument("--samples", type=int, default=None, help="area samples per surface and direction")
     ap.add_argument("--seed", type=int, default=0)
@@ -1173,7 +1169,7 @@ def main(argv=None):
         args.repeat = args.repeat or 2
     from BoneWatertightLib.params import Parameters
     dflt = Parameters()
-    params_note = (f"preset {args.preset}, " if args.preset else "") + (
+    params_note = (
         f"spacing {args.spacing} mm" if args.spacing is not None else "spacing auto") + (
         ", H0/HT auto" if dflt.h0 is None and dflt.ht is None else "")
 

@@ -4,11 +4,11 @@ gap between progress reports with and without the child (issue 13).
 One femur-sized phantom (``make_phantom("femur")``, the library's defaults), on slicer-core's
 real MRML nodes as the panel has them (CT volume, segmentation with the rough segment):
 
-1. child process, as the panel's Apply does (``mrml.start_many_on_nodes``, ``poll()`` every
-   100 ms as its QTimer, ``mrml.finish_many_on_nodes``): every interval the calling thread is
+1. child process, as the panel's Apply does (``nodes.start_many_on_nodes``, ``poll()`` every
+   100 ms as its QTimer, ``nodes.finish_many_on_nodes``): every interval the calling thread is
    busy without a chance to paint (export: between its cooperative progress calls; each poll;
    the finish), and the longest gap between the child's progress lines (as received);
-2. in this process (``mrml.run_many_on_nodes``, the logic's process()): the longest gap between
+2. in this process (``nodes.run_many_on_nodes``, the logic's process()): the longest gap between
    progress callbacks, and the stage it falls in.
 
 The two runs go one after the other (never together). Usage::
@@ -74,7 +74,7 @@ def _nodes(case: str):
 
 
 def measure_child(volume, seg, segmentId, params=None) -> dict:
-    from BoneWatertightLib import mrml
+    from BoneWatertightLib.app import nodes
 
     blocks = []  # (seconds, what)
     calls = []
@@ -84,7 +84,7 @@ def measure_child(volume, seg, segmentId, params=None) -> dict:
         return True
 
     t_enter = time.perf_counter()
-    run = mrml.start_many_on_nodes(volume, seg, [segmentId], None, params, progress=progress,
+    run = nodes.start_many_on_nodes(volume, seg, [segmentId], None, params, progress=progress,
                                    python=sys.executable)
     t_return = time.perf_counter()
     marks = [t_enter] + [c[0] for c in calls] + [t_return]
@@ -104,7 +104,7 @@ def measure_child(volume, seg, segmentId, params=None) -> dict:
     t0 = time.perf_counter()
     error = None
     try:
-        summary = mrml.finish_many_on_nodes(run).summaryLines()
+        summary = nodes.finish_many_on_nodes(run).summaryLines()
     except Exception as exc:  # the blocks and gaps up to the failure are still measured
         error, summary = f"{type(exc).__name__}: {exc}", []
     finish = time.perf_counter() - t0
@@ -121,8 +121,8 @@ def measure_child(volume, seg, segmentId, params=None) -> dict:
         "poll_mean_ms": 1e3 * sum(polls) / len(polls), "finish_s": finish,
         "child_lines": len(log), "child_longest_gap_s": gap,
         "child_longest_gap_between": [log[n - 1][2], log[n][2]] if n else None,
-        "child_longest_gap_stage": _stage_of(mrml.PIPELINE_START + (1 - mrml.PIPELINE_START)
-                                             * log[n - 1][1], mrml.PIPELINE_START) if n else None,
+        "child_longest_gap_stage": _stage_of(nodes.PIPELINE_START + (1 - nodes.PIPELINE_START)
+                                             * log[n - 1][1], nodes.PIPELINE_START) if n else None,
         "start_to_first_line_s": first_line,
         "child_run_s": (log[-1][0] - t_return) if log else None,
         "error": error, "summary": summary,
@@ -130,7 +130,7 @@ def measure_child(volume, seg, segmentId, params=None) -> dict:
 
 
 def measure_in_process(volume, seg, segmentId, params=None) -> dict:
-    from BoneWatertightLib import mrml
+    from BoneWatertightLib.app import nodes
 
     calls = []
 
@@ -141,7 +141,7 @@ def measure_in_process(volume, seg, segmentId, params=None) -> dict:
     t0 = time.perf_counter()
     error = None
     try:
-        out = mrml.run_many_on_nodes(volume, seg, [segmentId], None, params, progress=progress)
+        out = nodes.run_many_on_nodes(volume, seg, [segmentId], None, params, progress=progress)
         summary = out.summaryLines()
     except Exception as exc:  # the gaps up to the failure are still measured
         error, summary = f"{type(exc).__name__}: {exc}", []
@@ -153,8 +153,8 @@ def measure_in_process(volume, seg, segmentId, params=None) -> dict:
     return {
         "callbacks": len(calls), "run_s": total, "error": error,
         "longest_gap_s": gap, "longest_gap_between": [stamps[n - 1][2], stamps[n][2]],
-        "longest_gap_stage": _stage_of(stamps[n - 1][1], mrml.PIPELINE_START),
-        "top_gaps": [{"s": g, "after": a, "before": b, "stage": _stage_of(f, mrml.PIPELINE_START)}
+        "longest_gap_stage": _stage_of(stamps[n - 1][1], nodes.PIPELINE_START),
+        "top_gaps": [{"s": g, "after": a, "before": b, "stage": _stage_of(f, nodes.PIPELINE_START)}
                      for g, a, b, f in gaps],
         "summary": summary,
     }

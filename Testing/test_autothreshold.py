@@ -8,42 +8,58 @@ from BoneWatertightLib.stages.autothreshold import auto_thresholds, propose_thre
 from BoneWatertightLib.errors import EmptySegmentError, ThresholdError
 
 
-def _phantom(soft=40.0, cortex=1400.0, marrow=100.0, noise=15.0, seed=1):
-    """Tube bone: cortical shell (r 6-9 mm) around marrow, in soft tissue; 0.8 mm voxels."""
+def _phantom(soft=40.0, cortex=1400.0, marrow=100.0, noise=15.0, seed=1, blur_mm=0.0):
+    """Tube bone: cortical shell (r 6-9 mm) around marrow, in soft tissue; 0.8 mm voxels;
+    ``blur_mm``: a Gaussian blur of the HU (the scanner's point spread) before the noise.
+    Returns (ct, mask, r): r is each voxel's distance (mm) from the tube's axis, (z, y, x)."""
     n = 48
     z, y, x = np.mgrid[0:n, 0:n, 0:n].astype(float) * 0.8
     r = np.hypot(x - n * 0.4, y - n * 0.4)
     hu = np.full(r.shape, soft)
     hu[r <= 9.0] = cortex
     hu[r <= 6.0] = marrow
+    if blur_mm:
+        from scipy import ndimage
+
+        hu = ndimage.gaussian_filter(hu, blur_mm / 0.8)
     hu += np.random.default_rng(seed).normal(0, noise, hu.shape)
     ct = sitk.GetImageFromArray(hu.astype(np.int16))
     ct.SetSpacing((0.8, 0.8, 0.8))
     ct.SetOrigin((-10.0, 5.0, 3.0))
     mask = sitk.GetImageFromArray((r <= 8.0).astype(np.uint8))  # rough, a bit too small
     mask.CopyInformation(ct)
-    return ct, mask
+    return ct, mask, r
 
 
-def test_femur_like_contrast_gives_paper_defaults():
-    ct, mask = _phantom()
+def test_tissue_levels_are_measured_and_the_windows_separate_the_tissues():
+    """What the thresholds are for (module docstring): the measured levels are the phantom's
+    own; no soft-tissue voxel (noise included) reaches HT; W_H0 holds every cortex voxel and
+    no marrow voxel; on a blurred edge both windows reach beyond the half maximum, so W_HT
+    (the target) is the larger one and holds the whole bone."""
+    ct, mask, r = _phantom(blur_mm=0.6)
     p = propose_thresholds(ct, mask)
     assert p["soft_tissue"] == pytest.approx(40, abs=10)
     assert p["cortex"] == pytest.approx(1400, abs=60)
-    assert p["ht"] == pytest.approx(150, abs=20)
-    assert p["h0"] == pytest.approx(300, abs=25)
+    hu = sitk.GetArrayFromImage(ct).astype(float)
+    soft, cortex, marrow = hu[r >= 11.0], hu[(r >= 7.0) & (r <= 8.0)], hu[r <= 4.0]
+    assert soft.max() < p["ht"]
+    assert cortex.min() >= p["h0"] and marrow.max() < p["h0"]
+    assert p["ht"] < p["h0"] < 0.5 * (p["soft_tissue"] + p["cortex"])
+    edge = (r > 9.0) & (r < 10.5)  # the blurred outer border's tail
+    assert (edge & (hu >= p["ht"])).sum() > 1.2 * (edge & (hu >= p["h0"])).sum()
+    assert (hu[(r >= 6.0) & (r <= 9.0)] >= p["ht"]).all()  # W_HT holds the whole cortex
     assert p["ht"] < p["h0"] < p["theta_max"]
 
 
 def test_thresholds_scale_with_contrast():
-    low = propose_thresholds(*_phantom(cortex=700.0))
-    high = propose_thresholds(*_phantom(cortex=1800.0))
+    low = propose_thresholds(*_phantom(cortex=700.0)[:2])
+    high = propose_thresholds(*_phantom(cortex=1800.0)[:2])
     assert low["h0"] < high["h0"] and low["ht"] < high["ht"]
     assert low["ht"] >= low["soft_tissue"] + 50
 
 
 def test_mask_on_another_grid_is_resampled():
-    ct, mask = _phantom()
+    ct, mask, _ = _phantom()
     coarse = sitk.Resample(mask, [24, 24, 24], sitk.Transform(), sitk.sitkNearestNeighbor, ct.GetOrigin(),
                            (1.6, 1.6, 1.6), ct.GetDirection(), 0, sitk.sitkUInt8)
     a = propose_thresholds(ct, mask)
@@ -52,10 +68,10 @@ def test_mask_on_another_grid_is_resampled():
 
 
 def test_errors():
-    ct, mask = _phantom()
+    ct, mask, _ = _phantom()
     with pytest.raises(EmptySegmentError):
         propose_thresholds(ct, mask * 0)
-    flat, _ = _phantom(cortex=40.0, marrow=40.0)
+    flat, _, _ = _phantom(cortex=40.0, marrow=40.0)
     with pytest.raises(ThresholdError, match="No bone contrast"):
         propose_thresholds(flat, mask)
 

@@ -6,7 +6,7 @@ import pytest
 import baselines
 from BoneWatertightLib.mesh.checks import check_surface
 from BoneWatertightLib.mesh import enclosed_volume
-from BoneWatertightLib.params import preset
+from BoneWatertightLib.params import Parameters
 from metrics import surface_distance
 from phantoms import make_phantom
 
@@ -18,7 +18,7 @@ def tiny():
 
 @pytest.fixture(scope="module")
 def params():
-    return preset("femur", spacing=0.5)
+    return Parameters(spacing=0.5)
 
 
 @pytest.mark.parametrize("name", sorted(baselines.METHODS))

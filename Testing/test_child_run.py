@@ -1,5 +1,5 @@
 """The reconstruction in a child process (issue 13): ``BoneWatertightLib.app.child.ChildRun``, the
-command line's ``--progress-lines``, ``mrml.start_many_on_nodes`` / ``finish_many_on_nodes`` and
+command line's ``--progress-lines``, ``nodes.start_many_on_nodes`` / ``finish_many_on_nodes`` and
 the panel's wiring.
 
 Every child here is the real command line (``python -m BoneWatertightLib``) run by
@@ -194,7 +194,7 @@ def test_child_run_gives_the_in_process_surfaces_without_blocking(balls, tmp_pat
 def test_one_bone_with_its_neighbour(balls, tmp_path):
     """One target, the other label competing (the report is a single CaseReport: the shared
     JointReport parts are rebuilt from it)."""
-    from BoneWatertightLib import mrml
+    from BoneWatertightLib.app import summaries
 
     from BoneWatertightLib.mesh import Surface
 
@@ -208,7 +208,7 @@ def test_one_bone_with_its_neighbour(balls, tmp_path):
     assert isinstance(inter["M0"], Surface) and inter["M0"].n_faces > 100
     assert inter["constraints"].ndim == 2 and inter["constraints"].shape[1] == 3
     assert result.report.neighbours == ["left ball"]
-    lines = mrml.summarize_joint(result)
+    lines = summaries.summarize_joint(result)
     assert lines[0].startswith("1 bone in ") and "neighbours: left ball" in lines[0]
     assert "checks passed" in lines[1] and "plausible" in lines[1]
     assert os.listdir(tmp_path) == []
@@ -479,9 +479,10 @@ def _model_state(node):
 
 def test_start_and_finish_on_nodes_make_the_models_run_many_makes(scene, balls, tmp_path):
     from BoneWatertightLib import mrml
+    from BoneWatertightLib.app import nodes
 
     volume, seg, ids = _nodes(scene, balls)
-    ref = mrml.run_many_on_nodes(volume, seg, ids, None, PARAMS, addAsSegments=True,
+    ref = nodes.run_many_on_nodes(volume, seg, ids, None, PARAMS, addAsSegments=True,
                                  colorByDistance=True)
     reference = [_model_state(n) for n in ref.modelNodes]
     for node in ref.modelNodes:  # the child run makes its own "<segment> watertight 1" models
@@ -490,18 +491,18 @@ def test_start_and_finish_on_nodes_make_the_models_run_many_makes(scene, balls, 
         seg.GetSegmentation().RemoveSegment(segmentId)
 
     calls = []
-    run = mrml.start_many_on_nodes(volume, seg, ids, None, PARAMS, progress=lambda f, m: calls.append(f),
+    run = nodes.start_many_on_nodes(volume, seg, ids, None, PARAMS, progress=lambda f, m: calls.append(f),
                                    addAsSegments=True, colorByDistance=True, python=sys.executable,
                                    tempRoot=str(tmp_path))
-    assert calls and max(calls) <= mrml.IMPORT_START  # the export, on this thread
+    assert calls and max(calls) <= nodes.IMPORT_START  # the export, on this thread
     nodes_before = scene.GetNumberOfNodes()
     seen, longest = _poll_until_done(run)
     assert scene.GetNumberOfNodes() == nodes_before  # nothing written while the child runs
     assert longest <= MAX_POLL_S
     fractions = calls + [s.fraction for s in seen]
     assert np.all(np.diff(fractions) >= 0) and fractions[-1] == pytest.approx(1.0)
-    assert seen[0].fraction >= mrml.IMPORT_START
-    out = mrml.finish_many_on_nodes(run)
+    assert seen[0].fraction >= nodes.IMPORT_START
+    out = nodes.finish_many_on_nodes(run)
     assert os.listdir(tmp_path) == [] and run.closed and not run.guard._tags
 
     assert out.segmentIds == ref.segmentIds and out.neighbourSegmentIds == ref.neighbourSegmentIds
@@ -524,10 +525,10 @@ def test_start_and_finish_on_nodes_make_the_models_run_many_makes(scene, balls, 
 
 
 def test_scene_close_during_a_child_run_cancels_it(scene, balls, tmp_path):
-    from BoneWatertightLib import mrml
+    from BoneWatertightLib.app import nodes
 
     volume, seg, ids = _nodes(scene, balls)
-    run = mrml.start_many_on_nodes(volume, seg, ids, None, PARAMS.replace(spacing=0.5),
+    run = nodes.start_many_on_nodes(volume, seg, ids, None, PARAMS.replace(spacing=0.5),
                                    python=sys.executable, tempRoot=str(tmp_path))
     deadline = time.monotonic() + 120
     while run.poll().fraction < 0.15:
@@ -542,22 +543,22 @@ def test_scene_close_during_a_child_run_cancels_it(scene, balls, tmp_path):
         os.kill(pid, 0)
     assert run.poll().finished
     with pytest.raises(CancelledError, match="scene was closed"):
-        mrml.finish_many_on_nodes(run)
+        nodes.finish_many_on_nodes(run)
     assert scene.GetNumberOfNodes() == 0 and os.listdir(tmp_path) == []
 
 
 def test_an_error_in_the_child_leaves_the_scene_unchanged(scene, balls, tmp_path):
-    from BoneWatertightLib import mrml
+    from BoneWatertightLib.app import nodes
 
     volume, seg, ids = _nodes(scene, balls)
     before = scene.GetNumberOfNodes()
     params = PARAMS.replace(h0=2400.0, ht=2300.0)
     with pytest.raises(ThresholdError) as direct:
-        mrml.run_many_on_nodes(volume, seg, ids[:1], None, params, neighbours="none")
-    run = mrml.start_many_on_nodes(volume, seg, ids[:1], None, params, neighbours="none",
+        nodes.run_many_on_nodes(volume, seg, ids[:1], None, params, neighbours="none")
+    run = nodes.start_many_on_nodes(volume, seg, ids[:1], None, params, neighbours="none",
                                    python=sys.executable, tempRoot=str(tmp_path))
     with pytest.raises(ThresholdError) as child:
-        mrml.finish_many_on_nodes(run)  # waits for the child
+        nodes.finish_many_on_nodes(run)  # waits for the child
     assert str(child.value) == str(direct.value)
     assert scene.GetNumberOfNodes() == before and seg.GetSegmentation().GetNumberOfSegments() == 2
     assert os.listdir(tmp_path) == [] and not run.guard._tags
@@ -594,5 +595,5 @@ def test_panel_runs_apply_in_a_polled_child_process():
     assert "self._childRun.close()" in _method("cleanup")
     assert "import open3d" not in _method("_ensureOpen3d").split("confirmOkCancelDisplay")[0]
     logic = _method("startProcessMany", "BoneWatertightLogic")
-    assert "mrml.start_many_on_nodes(" in logic and "find_python_slicer(slicer.app.applicationDirPath())" in logic
-    assert "mrml.finish_many_on_nodes(run, timeout)" in _method("finishProcessMany", "BoneWatertightLogic")
+    assert "nodes.start_many_on_nodes(" in logic and "find_python_slicer(slicer.app.applicationDirPath())" in logic
+    assert "nodes.finish_many_on_nodes(run, timeout)" in _method("finishProcessMany", "BoneWatertightLogic")

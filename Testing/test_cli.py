@@ -160,7 +160,7 @@ def bad_case(case, tmp_path):
     (["--label", "femur"], "'femur' is not a label value"),
     (["--label", "1", "--ht", "400", "--h0", "300"], "Thresholds out of order"),
     (["--label", "1", "--label", "2"], "no {label} placeholder"),
-    (["--label", "1", "--preset", "knee"], "invalid choice: 'knee'"),
+    (["--label", "1", "--preset", "femur"], "--preset: Parameter presets were removed"),
     (["--label", "1", "--poisson-depth", "12"], "poisson_depth must be between 4 and 10"),
     (["--label", "1", "--views", "many"], "invalid int value: 'many'"),
 ])
@@ -256,15 +256,16 @@ def test_every_parameter_is_an_option():
 
 def test_parameters_from_options():
     parser = cli.build_parser()
-    args = parser.parse_args(["--preset", "hip", "--h0", "360", "--no-refine-edges",
+    args = parser.parse_args(["--h0", "360", "--no-refine-edges", "--max-erosions", "2",
                               "--spacing", "auto", "--edge-length", "0.8",
                               "--save-intermediates", "x"])
     p = cli.parameters_from_args(args)
-    # the preset sets morphology only; HT stays automatic (None)
+    # what is not given keeps its default; HT stays automatic (None)
     assert (p.h0, p.ht, p.refine_edges, p.spacing, p.edge_length) == (360.0, None, False,
                                                                        None, 0.8)
-    assert p.keep_intermediates is True
-    assert p.max_erosions == 3  # from the hip preset
+    assert p.keep_intermediates is True and p.max_erosions == 2
+    assert p.replace(h0=None, refine_edges=True, max_erosions=3, edge_length=None,
+                     keep_intermediates=False) == Parameters()
     assert cli.parameters_from_args(parser.parse_args([])) == Parameters()
 
 
@@ -310,18 +311,20 @@ def test_batch_csv_goes_on_past_a_failed_case(case, tmp_path, capsys):
     ct, mask = str(folder / "ct.nrrd"), str(folder / "mask.nrrd")
     _params_csv([[ct, mask, "1", "out/good.stl", ""],
                  [ct, mask, "5", "out/bad.stl", ""],
-                 ["missing.nrrd", mask, "1", "out/missing.stl", "femur"]],
+                 ["missing.nrrd", mask, "1", "out/missing.stl", ""],
+                 [ct, mask, "1", "out/preset.stl", "femur"]],
                 tmp_path / "cases.csv")
     code, stdout, stderr = run(["--cases", str(tmp_path / "cases.csv"), "--workers", "2",
                                 "--summary", str(tmp_path / "summary.csv")] + FAST[:-1], capsys)
     assert code == 3
     rows = _read_summary(tmp_path / "summary.csv")
-    assert [r["status"] for r in rows] == ["ok", "bad input", "bad input"]
+    assert [r["status"] for r in rows] == ["ok", "bad input", "bad input", "bad input"]
     assert "Label 5 is not in" in rows[1]["message"]
     assert "CT not found" in rows[2]["message"]
+    assert "row 4 of" in rows[3]["message"] and "presets were removed" in rows[3]["message"]
     assert rows[0]["checks_ok"] == "True"
     assert sorted(os.listdir(tmp_path / "out")) == ["good.stl"]
-    assert "1 of 3 surfaces built" in stdout
+    assert "1 of 4 surfaces built" in stdout
     assert bwio.read_surface(str(tmp_path / "out" / "good.stl")).n_faces > 100
 
 

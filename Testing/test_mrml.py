@@ -18,6 +18,7 @@ vtk = pytest.importorskip("vtk")
 from vtk.util import numpy_support as ns  # noqa: E402
 
 from BoneWatertightLib import mrml  # noqa: E402
+from BoneWatertightLib.app import nodes, summaries  # noqa: E402
 from BoneWatertightLib.errors import (  # noqa: E402
     CancelledError,
     EmptySegmentError,
@@ -406,7 +407,7 @@ def test_run_on_nodes_input_errors_leave_scene_unchanged(scene, case):
     elif case == "no_volume":
         kwargs["volumeNode"] = None
     with pytest.raises(expected) as info:
-        mrml.run_on_nodes(**kwargs, addAsSegment=True, showIntermediates=True)
+        nodes.run_on_nodes(**kwargs, addAsSegment=True, showIntermediates=True)
     assert len(str(info.value)) > 20  # a sentence, not a code
     assert _state(scene, ct, seg) == before
     assert _state(scene, ct, far) == before_far
@@ -419,7 +420,7 @@ def test_run_on_nodes_threshold_window_without_bone_leaves_scene_unchanged(scene
     before = _state(scene, ct, seg)
     # no voxel of the region reaches [H0, theta_max] (the phantom's maximum is ~1030 HU)
     with pytest.raises(ThresholdError):
-        mrml.run_on_nodes(ct, seg, segId, params={"h0": 1800.0, "ht": 1700.0, "theta_max": 2500.0})
+        nodes.run_on_nodes(ct, seg, segId, params={"h0": 1800.0, "ht": 1700.0, "theta_max": 2500.0})
     assert _state(scene, ct, seg) == before
 
 
@@ -435,7 +436,7 @@ def test_run_on_nodes_cancel_leaves_scene_unchanged(scene):
         return len(calls) < 3  # cancel at the third report
 
     with pytest.raises(CancelledError):
-        mrml.run_on_nodes(ct, seg, segId, outputModelNode=out, progress=progress, addAsSegment=True)
+        nodes.run_on_nodes(ct, seg, segId, outputModelNode=out, progress=progress, addAsSegment=True)
     assert len(calls) == 3
     assert _state(scene, ct, seg) == before
     assert ns.vtk_to_numpy(out.GetPolyData().GetPoints().GetData()).tobytes() == out_bytes
@@ -452,7 +453,7 @@ def test_run_on_nodes_sphere_accuracy_in_ras(scene, refine_edges):
     conv = seg.GetSegmentation().SerializeAllConversionParameters()
     n_nodes = scene.GetNumberOfNodes()
     fractions = []
-    model, result = mrml.run_on_nodes(
+    model, result = nodes.run_on_nodes(
         ct, seg, segId, params={"spacing": 0.6, "h0": 500.0, "ht": 300.0, "refine_edges": refine_edges},
         progress=lambda f, m: fractions.append(f) or True, addAsSegment=True, colorByDistance=True)
     assert model is not None and model.IsA("vtkMRMLModelNode")
@@ -486,7 +487,7 @@ def test_run_on_nodes_sphere_accuracy_in_ras(scene, refine_edges):
 
     stored = json.loads(model.GetAttribute(mrml.REPORT_ATTRIBUTE))
     assert stored["timings"]["total"] == pytest.approx(result.report.timings.total)
-    summary = mrml.summarize(result)
+    summary = summaries.summarize(result)
     assert re.search(rf", {result.report.timings.total:.1f} s", summary), summary
     assert "checks passed" in summary and f"{len(pts)} vertices" in summary
     assert fractions and fractions[-1] == pytest.approx(1.0, abs=0.05)

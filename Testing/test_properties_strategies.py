@@ -11,6 +11,8 @@ every declared range and invalid ones (NaN, inf, out of range, wrong types, None
 is no auto).
 
 The harness runs one call and returns its outcome ("ok" or the library error's class name).
+An invalid case must raise the typed error its inputs call for (:func:`expected_error`,
+:func:`expected_error_many`: decided from the inputs alone, not from the library's answer).
 Anything else fails the test: an exception that is not a
 :class:`~BoneWatertightLib.errors.BoneWatertightError` (a ValueError only as InputError), a
 returned surface that fails :func:`~BoneWatertightLib.mesh.checks.check_surface`, an input
@@ -667,11 +669,79 @@ def check_result_surfaces(result) -> int:
     return n
 
 
-def run_case(test: str, describe: dict, call, images, params=None, check=None):
+def parameters_valid(overrides: dict) -> bool:
+    """Whether ``Parameters(**overrides)`` passes validate() (each value, and the cross-checks)."""
+    try:
+        Parameters(**overrides).validate()
+    except InputError:
+        return False
+    return True
+
+
+def ct_refused(ct: sitk.Image) -> bool:
+    """The CT is not a scalar 3-D CT in HU by the library's documented rules: a single slice
+    along an axis, a direction that is not orthonormal, or a label map (integers, none
+    negative, at most 16 distinct values)."""
+    direction = np.array(ct.GetDirection()).reshape(3, 3)
+    arr = sitk.GetArrayViewFromImage(ct)
+    labelmap = (np.issubdtype(arr.dtype, np.integer) and arr.min() >= 0
+                and len(np.unique(arr)) <= 16)
+    return (min(ct.GetSize()) < 2 or not np.allclose(direction.T @ direction, np.eye(3), atol=1e-4)
+            or labelmap)
+
+
+def mask_on_ct(ct: sitk.Image, labels: sitk.Image) -> np.ndarray:
+    """Which CT voxels the label map's non-zero voxels cover (nearest neighbour), (z, y, x)."""
+    mask = sitk.Cast(sitk.NotEqual(labels, 0), sitk.sitkUInt8)
+    on_ct = sitk.Resample(mask, ct, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
+    return sitk.GetArrayFromImage(on_ct) > 0
+
+
+def expected_error(ct: sitk.Image, labels: sitk.Image, overrides: dict) -> "str | None":
+    """The typed error a one-bone case (``reconstruct(ct, labels != 0, params)``) must raise,
+    decided from the inputs alone in the order the library checks them: invalid parameters
+    -> InputError; a CT that is no CT -> VolumeTypeError; an empty segment ->
+    EmptySegmentError; a segment outside the CT -> NoOverlapError. None where the inputs are
+    valid: the reconstruction then decides (a surface, or a ReconstructionError)."""
+    if not parameters_valid(overrides):
+        return "InputError"
+    if ct_refused(ct):
+        return "VolumeTypeError"
+    if not np.any(sitk.GetArrayViewFromImage(labels) != 0):
+        return "EmptySegmentError"
+    if not mask_on_ct(ct, labels).any():
+        return "NoOverlapError"
+    return None
+
+
+def labels_refused(labels: sitk.Image) -> bool:
+    """Label values a label map must not have: negative, non-integer, or beyond uint32."""
+    arr = sitk.GetArrayViewFromImage(labels)
+    return bool(arr.min() < 0 or arr.max() > 2 ** 32 - 1 or not np.array_equal(arr, np.round(arr)))
+
+
+def expected_error_many(ct: sitk.Image, labels: sitk.Image, overrides: dict, targets) -> "str | None":
+    """As :func:`expected_error` for ``reconstruct_many``: invalid parameters -> InputError; a
+    CT that is no CT -> VolumeTypeError; label values it cannot hold, or a bone asked for twice
+    -> InputError; none of the targets in the label map -> EmptySegmentError. None otherwise
+    (the reconstruction, or a per-bone check, decides)."""
+    if not parameters_valid(overrides):
+        return "InputError"
+    if ct_refused(ct):
+        return "VolumeTypeError"
+    if labels_refused(labels) or len(set(targets)) != len(targets):
+        return "InputError"
+    if not np.isin(sitk.GetArrayViewFromImage(labels), list(targets)).any():
+        return "EmptySegmentError"
+    return None
+
+
+def run_case(test: str, describe: dict, call, images, params=None, check=None, expect=None):
     """Run ``call(progress)`` and check the properties; return the outcome string.
 
     ``images``: the input images (checked unchanged afterwards); ``params``: the parameter
-    object handed in (checked unchanged); ``check(result, outcome)``: more assertions.
+    object handed in (checked unchanged); ``check(result, outcome)``: more assertions;
+    ``expect``: the outcome the case must have (an error class name, or "ok"), when known.
     """
     snaps = [Snapshot(img) for img in images]
     before = params_state(params)
@@ -710,6 +780,8 @@ def run_case(test: str, describe: dict, call, images, params=None, check=None):
             assert s.unchanged(), f"input image {i} was modified\ncase: {describe}"
         assert params_state(params) == before, "the parameters were modified"
         assert not progress.bad, f"progress fractions out of [0, 1]: {progress.bad[:3]}"
+        if expect is not None:
+            assert outcome == expect, f"expected {expect}, got {outcome}: {detail}\ncase: {describe}"
         if check is not None:
             check(result, outcome)
     except AssertionError as exc:

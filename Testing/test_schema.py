@@ -10,7 +10,7 @@ Surfaces checked against the schema, ranges and defaults included:
 - the panel's .ui (one widget per parameter, right class, right section, and no copy of a
   bound, default or tooltip: those come from the schema in setup());
 - the Slicer batch script's options;
-- the presets (each sets only its own fields).
+- no presets anywhere (they were removed: each equalled the defaults).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import pytest
 
 from BoneWatertightLib.app import cli, options
 from BoneWatertightLib.errors import InputError
-from BoneWatertightLib.params import PRESETS, SCHEMA, Parameters, apply_preset, preset
+from BoneWatertightLib.params import PRESETS_REMOVED, SCHEMA, Parameters
 
 ROOT = Path(__file__).resolve().parents[1]
 MODULE_PY = ROOT / "BoneWatertight" / "BoneWatertight.py"
@@ -73,7 +73,7 @@ def test_stage_defaults_agree_with_the_schema():
     from BoneWatertightLib.stages import deform, filtering, prepare, refine, threshold, visible
 
     checked = 0
-    for func in (prepare.prepare, prepare.prepare_labels, filtering.hybrid_filter,
+    for func in (prepare.prepare_labels, filtering.hybrid_filter,
                  threshold.bone_masks, threshold.erosions_to_separate,
                  visible.visible_points, deform.Deformer.__init__, refine.refine_to_edges,
                  refine.refine_pass):
@@ -219,19 +219,16 @@ def _parameter_node_class():
     for node in tree.body:
         if isinstance(node, ast.FunctionDef) and node.name in wanted:
             body.append(node)
-        elif isinstance(node, ast.Assign) and any(
-                isinstance(t, ast.Name) and t.id == "PRESET_NAMES" for t in node.targets):
-            body.append(node)
         elif isinstance(node, ast.ClassDef) and node.name == "BoneWatertightParameterNode":
             classdef = node
-    assert classdef is not None and len(body) == 3
+    assert classdef is not None and len(body) == 2
     decorators = [d.id for d in classdef.decorator_list if isinstance(d, ast.Name)]
     # the schema fields must be added before parameterNodeWrapper reads the class
     assert decorators == ["parameterNodeWrapper", "withLibraryParameters"], decorators
     classdef.decorator_list = classdef.decorator_list[1:]
     body.append(classdef)
     namespace = {"Annotated": typing.Annotated, "Optional": typing.Optional, "SCHEMA": SCHEMA,
-                 "PRESETS": PRESETS, "WithinRange": _Recorded, "Choice": _Recorded,
+                 "WithinRange": _Recorded, "Choice": _Recorded,
                  "vtkMRMLScalarVolumeNode": slicer.vtkMRMLScalarVolumeNode,
                  "vtkMRMLSegmentationNode": slicer.vtkMRMLSegmentationNode,
                  "vtkMRMLModelNode": slicer.vtkMRMLModelNode}
@@ -264,9 +261,9 @@ def test_parameter_node_fields_match_the_schema():
     # the module's conversion back to library values comes from the schema as well
     assert "spec.from_panel(" in MODULE_PY.read_text(encoding="utf-8")
     for name in ("inputVolume", "inputSegmentation", "segmentIds", "segmentId", "neighbours",
-                 "outputModel", "preset", "addAsSegment", "showIntermediates", "colorByDistance"):
+                 "outputModel", "addAsSegment", "showIntermediates", "colorByDistance"):
         assert name in hints
-    assert namespace["PRESET_NAMES"] == ["custom", *PRESETS]
+    assert "preset" not in hints
 
 
 def test_module_has_no_literal_range_or_default_of_a_schema_parameter():
@@ -349,7 +346,7 @@ def test_slicer_batch_script_options_match_the_schema():
         assert (a.option_strings, a.help, a.choices, a.default) == \
             (b.option_strings, b.help, b.choices, b.default), name
     flags = {s for a in parser._actions for s in a.option_strings}
-    for flag in ("--ct", "--seg", "--label", "--out", "--ras", "--report", "--preset",
+    for flag in ("--ct", "--seg", "--label", "--out", "--ras", "--report",
                  "--picture", "--self-test"):
         assert flag in flags
     with pytest.raises(InputError, match="edge_level must be between 0.3 and 0.9"):
@@ -358,15 +355,22 @@ def test_slicer_batch_script_options_match_the_schema():
 
 # ---------------------------------------------------------------------------------- presets
 
-def test_presets_set_only_their_own_fields():
-    custom = Parameters(spacing=0.7, iterations=4, edge_level=0.7, h0=280.0, ht=120.0)
-    for name, fields in PRESETS.items():
-        assert set(fields) <= set(SCHEMA)
-        applied = apply_preset(custom, name)
-        for key in SCHEMA:
-            expected = fields[key] if key in fields else getattr(custom, key)
-            assert getattr(applied, key) == expected, (name, key)
-        assert preset(name) == apply_preset(Parameters(), name)
-    module = MODULE_PY.read_text(encoding="utf-8")
-    handler = module[module.index("def onPresetChanged"):module.index("def onAutoThreshold")]
-    assert "PRESETS[name].items()" in handler and "ALGORITHM_FIELDS" not in handler
+def test_presets_are_refused_with_the_reason_everywhere():
+    """The presets were removed (each equalled the defaults): the command line and the Slicer
+    batch script refuse --preset saying why, the logic refuses preset=, the panel has no
+    preset selector."""
+    spec_ = importlib.util.spec_from_file_location("bonewatertight_batch", BATCH_SCRIPT)
+    module = importlib.util.module_from_spec(spec_)
+    spec_.loader.exec_module(module)
+    for parser in (cli.build_parser(), module.build_parser()):
+        with pytest.raises(InputError, match="presets were removed") as err:
+            parser.parse_args(["--preset", "femur"])
+        assert PRESETS_REMOVED in str(err.value)
+        assert "--preset" not in parser.format_help()
+    source = MODULE_PY.read_text(encoding="utf-8")
+    assert "PRESETS_REMOVED" in source and "presetComboBox" not in source
+    assert "presetComboBox" not in UI_FILE.read_text(encoding="utf-8")
+    import BoneWatertightLib
+    from BoneWatertightLib import params
+
+    assert not hasattr(BoneWatertightLib, "preset") and not hasattr(params, "PRESETS")

@@ -1,5 +1,5 @@
 """Several bones in one run from MRML nodes (SPEC §5b, issue 10 item 3) on slicer-core's real
-MRML classes: ``mrml.run_many_on_nodes`` and the one-bone ``run_on_nodes`` with the other
+MRML classes: ``nodes.run_many_on_nodes`` and the one-bone ``run_on_nodes`` with the other
 segments as neighbours.
 
 Phantom: three balls of bone (radius R_MM, ~1000 HU, blurred edge, noise) in a row along an
@@ -24,6 +24,8 @@ vtk = pytest.importorskip("vtk")
 from vtk.util import numpy_support as ns  # noqa: E402
 
 from BoneWatertightLib import mrml  # noqa: E402
+from BoneWatertightLib.app import nodes, summaries  # noqa: E402
+from BoneWatertightLib.app.preview import ThresholdPreview  # noqa: E402
 from BoneWatertightLib.errors import (  # noqa: E402
     CancelledError,
     EmptySegmentError,
@@ -141,7 +143,7 @@ def test_two_bones_one_model_each_in_ras_with_segments_written_back_without_over
     conv = seg.GetSegmentation().SerializeAllConversionParameters()
     n_segments = seg.GetSegmentation().GetNumberOfSegments()
     calls = []
-    out = mrml.run_many_on_nodes(ct, seg, [ids["A"], ids["B"]], params=PARAMS, addAsSegments=True,
+    out = nodes.run_many_on_nodes(ct, seg, [ids["A"], ids["B"]], params=PARAMS, addAsSegments=True,
                                  colorByDistance=True, progress=lambda f, m: calls.append((f, m)) or True)
     # one model per bone, in the order asked for, named after its segment
     assert [m.GetName() for m in out.modelNodes] == ["A watertight", "B watertight"]
@@ -207,10 +209,10 @@ def test_two_bones_one_model_each_in_ras_with_segments_written_back_without_over
     assert s.GetSegment(added[1]).GetTag(mrml.SOURCE_SEGMENT_TAG, tag) and str(tag) == ids["B"]
 
     # a second run replaces the models of the first (found by their source segment) in place
-    previous = mrml.previous_output_models(scene, seg, [ids["A"], ids["B"], ids["C"]])
+    previous = nodes.previous_output_models(scene, seg, [ids["A"], ids["B"], ids["C"]])
     assert previous == {ids["A"]: out.modelNodes[0], ids["B"]: out.modelNodes[1]}
     n_models = scene.GetNumberOfNodesByClass("vtkMRMLModelNode")
-    again = mrml.run_many_on_nodes(ct, seg, [ids["B"], ids["A"]], previous, params=PARAMS)
+    again = nodes.run_many_on_nodes(ct, seg, [ids["B"], ids["A"]], previous, params=PARAMS)
     assert again.modelNodes == [out.modelNodes[1], out.modelNodes[0]]
     # the written-back copies of A and B (which overlap A and B) are not neighbours
     assert again.neighbourSegmentIds == [ids["C"]]
@@ -229,8 +231,8 @@ def test_neighbours_keep_a_bone_out_of_the_other(scene):
     """The one-bone run uses the other segments as neighbours by default: A's segment reaches
     into B at the joint, and only B's competition keeps A's surface out of B."""
     ct, seg, ids, _ = _build(scene)
-    alone, res_alone = mrml.run_on_nodes(ct, seg, ids["A"], params=PARAMS, neighbours="none")
-    model, result = mrml.run_on_nodes(ct, seg, ids["A"], params=PARAMS)
+    alone, res_alone = nodes.run_on_nodes(ct, seg, ids["A"], params=PARAMS, neighbours="none")
+    model, result = nodes.run_on_nodes(ct, seg, ids["A"], params=PARAMS)
     a_alone, a = _points(alone), _points(model)
     err_alone = np.abs(np.linalg.norm(a_alone - BALLS["A"], axis=1) - R_MM).max()
     err = np.abs(np.linalg.norm(a - BALLS["A"], axis=1) - R_MM).max()
@@ -244,7 +246,7 @@ def test_neighbours_keep_a_bone_out_of_the_other(scene):
 
 def test_a_bone_cut_by_the_scan_keeps_its_cap_array(scene):
     ct, seg, ids, ijk_to_ras = _build(scene, cut=True)
-    model, result = mrml.run_on_nodes(ct, seg, ids["C"], params=PARAMS)
+    model, result = nodes.run_on_nodes(ct, seg, ids["C"], params=PARAMS)
     poly = model.GetPolyData()
     cap = ns.vtk_to_numpy(poly.GetCellData().GetArray("Cap"))
     assert len(cap) == poly.GetNumberOfCells() and 0 < cap.sum() < len(cap)
@@ -256,7 +258,7 @@ def test_a_bone_cut_by_the_scan_keeps_its_cap_array(scene):
     assert np.allclose(ijk[on_cap, 0], 45.5, atol=1e-3) and ijk[:, 0].max() <= 45.5 + 1e-3
     area = result.report.cap["area_mm2"]
     assert 80 < area < 125  # the ball's section 3.3 mm from its centre: 120 mm²
-    assert f"capped, {area:.0f} mm² of cap" in mrml.bone_summary(result)
+    assert f"capped, {area:.0f} mm² of cap" in summaries.bone_summary(result)
 
 
 # ---------------------------------------------------------------------------------------
@@ -269,13 +271,13 @@ def test_the_second_bone_failing_leaves_the_scene_unchanged(scene):
     before = _state(scene, seg, [previous])
     messages = []
     with pytest.raises(PlausibilityError, match="C: .* part of the bone is missing"):
-        mrml.run_many_on_nodes(ct, seg, [ids["A"], ids["C"]], [previous, None], params=PARAMS,
+        nodes.run_many_on_nodes(ct, seg, [ids["A"], ids["C"]], [previous, None], params=PARAMS,
                                addAsSegments=True, showIntermediates=True,
                                progress=lambda f, m: messages.append(m) or True)
     assert "A: done" in messages  # the first bone was finished when the second one failed
     assert _state(scene, seg, [previous]) == before
     # allowed to warn: both bones come back, the warning in the result and its summary
-    out = mrml.run_many_on_nodes(ct, seg, [ids["A"], ids["C"]], params=dict(PARAMS, on_implausible="warn"))
+    out = nodes.run_many_on_nodes(ct, seg, [ids["A"], ids["C"]], params=dict(PARAMS, on_implausible="warn"))
     assert len(out.modelNodes) == 2 and len(out.warnings) == 1 and out.warnings[0].startswith("C: ")
     lines = out.summaryLines()
     assert "IMPLAUSIBLE" in lines[2] and "1 warning" in lines[2]
@@ -298,7 +300,7 @@ def test_cancel_or_scene_close_during_a_joint_run_leaves_the_scene_unchanged(sce
         return True
 
     with pytest.raises(CancelledError):
-        mrml.run_many_on_nodes(ct, seg, [ids["A"], ids["B"]], {ids["A"]: previous}, params=PARAMS,
+        nodes.run_many_on_nodes(ct, seg, [ids["A"], ids["B"]], {ids["A"]: previous}, params=PARAMS,
                                addAsSegments=True, showIntermediates=True, progress=progress)
     assert any(m.startswith("B: visible points") for m in calls) and "done" not in calls
     if when == "cancel":
@@ -326,7 +328,7 @@ def test_writing_the_results_undoes_itself_when_it_fails_half_way(scene, monkeyp
 
     monkeypatch.setattr(mrml, "add_intermediate_nodes", fail)
     with pytest.raises(RuntimeError, match="out of memory"):
-        mrml.run_many_on_nodes(ct, seg, [ids["A"], ids["B"]], [previous, None], params=PARAMS,
+        nodes.run_many_on_nodes(ct, seg, [ids["A"], ids["B"]], [previous, None], params=PARAMS,
                                addAsSegments=True, showIntermediates=True, colorByDistance=True)
     assert reached == [len(before["segments"]) + 2]  # the segments had been added by then
     assert _state(scene, seg, [previous]) == before
@@ -368,13 +370,13 @@ def test_overlapping_segments_are_refused_naming_them(scene):
     previous = _previous_model(scene)
     before = _state(scene, seg, [previous])
     with pytest.raises(InputError, match=r"'B' and 'tumour' \(\d+ voxels") as info:
-        mrml.run_on_nodes(ct, seg, ids["A"], previous, params=PARAMS, addAsSegment=True)
+        nodes.run_on_nodes(ct, seg, ids["A"], previous, params=PARAMS, addAsSegment=True)
     assert "neighbours" in str(info.value)  # says how to go on
     assert _state(scene, seg, [previous]) == before
     with pytest.raises(InputError, match="'B' and 'tumour'"):  # a chosen neighbour
-        mrml.run_many_on_nodes(ct, seg, [ids["A"], ids["B"]], params=PARAMS, neighbours=[extra])
+        nodes.run_many_on_nodes(ct, seg, [ids["A"], ids["B"]], params=PARAMS, neighbours=[extra])
     with pytest.raises(InputError, match="'B' and 'tumour'"):  # two bones
-        mrml.run_many_on_nodes(ct, seg, [ids["B"], extra], params=PARAMS, neighbours="none")
+        nodes.run_many_on_nodes(ct, seg, [ids["B"], extra], params=PARAMS, neighbours="none")
     assert _state(scene, seg, [previous]) == before
     # without the tumour among the neighbours the export goes through
     labels = mrml.segments_to_sitk_labels(seg, [ids["A"], ids["B"], ids["C"]], ct, required=[ids["A"]])
@@ -439,7 +441,7 @@ def test_bad_joint_requests_are_refused_before_any_work(scene, case):
         kwargs["addAsSegments"], match = True, "non-linear transform"
     calls = []
     with pytest.raises(InputError, match=match):
-        mrml.run_many_on_nodes(ct, seg, params=PARAMS, progress=lambda f, m: calls.append(m) or True, **kwargs)
+        nodes.run_many_on_nodes(ct, seg, params=PARAMS, progress=lambda f, m: calls.append(m) or True, **kwargs)
     assert calls == [] and _state(scene, seg, [previous]) == before
 
 
@@ -464,7 +466,7 @@ def test_write_back_gives_each_contested_voxel_to_one_surface(scene):
         surfaces.append(from_polydata(src.GetOutput(), "RAS"))
     prepared = mrml.prepare_segments_without_overlap(seg, ct, [("left", surfaces[0]), ("right", surfaces[1])])
     image = prepared.labelmap
-    arr = mrml._array_view(image)
+    arr = mrml.array_view(image)
     m = vtk.vtkMatrix4x4()
     image.GetImageToWorldMatrix(m)
     a = np.array([[m.GetElement(r, c) for c in range(4)] for r in range(4)])
@@ -492,22 +494,22 @@ def test_write_back_gives_each_contested_voxel_to_one_surface(scene):
 def test_segment_selection_of_the_panel(scene):
     ct, seg, ids, _ = _build(scene)
     a, b, c = ids["A"], ids["B"], ids["C"]
-    assert mrml.segment_selection(seg, [c, "S_gone", a, c]) == [c, a]  # stored, valid, once
-    assert mrml.segment_selection(seg, [], b) == [b]  # an older parameter node's one segment
-    assert mrml.segment_selection(seg, ["S_gone"], "S_gone") == []
-    assert mrml.segment_selection(seg, [], "", pickFirst=True) == [a]  # a segmentation just chosen
-    assert mrml.segment_selection(seg, [b], "", pickFirst=True) == [b]
-    assert mrml.segment_selection(None, [a], a, pickFirst=True) == []
+    assert nodes.segment_selection(seg, [c, "S_gone", a, c]) == [c, a]  # stored, valid, once
+    assert nodes.segment_selection(seg, [], b) == [b]  # an older parameter node's one segment
+    assert nodes.segment_selection(seg, ["S_gone"], "S_gone") == []
+    assert nodes.segment_selection(seg, [], "", pickFirst=True) == [a]  # a segmentation just chosen
+    assert nodes.segment_selection(seg, [b], "", pickFirst=True) == [b]
+    assert nodes.segment_selection(None, [a], a, pickFirst=True) == []
     empty = scene.AddNewNodeByClass("vtkMRMLSegmentationNode")
-    assert mrml.segment_selection(empty, [], "", pickFirst=True) == []
+    assert nodes.segment_selection(empty, [], "", pickFirst=True) == []
 
 
 def test_preview_and_auto_thresholds_on_several_segments(scene):
     ct, seg, ids, _ = _build(scene)
-    preview = mrml.ThresholdPreview(scene, margin_mm=2.0)
-    one = mrml._array_view(preview.update(ct, seg, ids["A"], 500.0, 300.0, 2500.0).GetImageData()).shape
+    preview = ThresholdPreview(scene, margin_mm=2.0)
+    one = mrml.array_view(preview.update(ct, seg, ids["A"], 500.0, 300.0, 2500.0).GetImageData()).shape
     node = preview.update(ct, seg, [ids["A"], ids["C"]], 500.0, 300.0, 2500.0)
-    both = mrml._array_view(node.GetImageData())
+    both = mrml.array_view(node.GetImageData())
     assert preview.cacheBuilds == 2 and both.shape[2] > one[2] + 20  # the crop spans A to C
     # the crop holds both segments: every voxel of their union lies inside it
     m = vtk.vtkMatrix4x4()
@@ -521,6 +523,6 @@ def test_preview_and_auto_thresholds_on_several_segments(scene):
     assert preview.update(ct, seg, [ids["A"], ids["C"]], 520.0, 300.0, 2500.0) is node
     assert preview.cacheBuilds == 2  # a drag step reuses the crop
     preview.remove()
-    proposal = mrml.propose_thresholds(ct, seg, [ids["A"], ids["B"]])
-    single = mrml.propose_thresholds(ct, seg, ids["A"])
+    proposal = nodes.propose_thresholds(ct, seg, [ids["A"], ids["B"]])
+    single = nodes.propose_thresholds(ct, seg, ids["A"])
     assert 40 < proposal["ht"] < proposal["h0"] < 1000 and abs(proposal["h0"] - single["h0"]) < 150

@@ -181,7 +181,7 @@ def test_widget_wires_sliders_auto_and_timer_through_the_controller():
     assert "self._connectingGui = True" in ast.unparse(_method("setParameterNode"))
     # the per-step work is the cached preview, created once and kept
     update = ast.unparse(_method("updatePreview"))
-    assert "mrml.ThresholdPreview(slicer.mrmlScene)" in update and "self._preview.update(" in update
+    assert "preview.ThresholdPreview(slicer.mrmlScene)" in update and "self._preview.update(" in update
 
 
 def test_widget_cancels_a_running_run_when_the_scene_closes():
@@ -206,7 +206,7 @@ def test_widget_chooses_several_segments_and_runs_them_together():
     # in multi-selection mode the selector never emits currentSegmentChanged
     assert "currentSegmentChanged" not in MODULE_PY.read_text(encoding="utf-8")
     sync = ast.unparse(_method("_syncSegmentSelectorFromParameterNode"))
-    assert "mrml.segment_selection(seg, list(p.segmentIds), p.segmentId" in sync
+    assert "nodes.segment_selection(seg, list(p.segmentIds), p.segmentId" in sync
     assert "self.ui.segmentSelector.setSelectedSegmentIDs(ids)" in sync
     assert "self._updatingSegmentSelector = True" in sync and "finally:" in sync
     store = ast.unparse(_method("_storeSegmentSelection"))
@@ -220,14 +220,14 @@ def test_widget_chooses_several_segments_and_runs_them_together():
     assert "self.logic.processManyWithResult" in calls and "self.logic.processWithResult" not in calls
     text = ast.unparse(apply)
     assert "neighbours='auto' if p.neighbours else 'none'" in text
-    assert "mrml.previous_output_models(slicer.mrmlScene, p.inputSegmentation, ids) if several" in text
+    assert "nodes.previous_output_models(slicer.mrmlScene, p.inputSegmentation, ids) if several" in text
     assert "else [p.outputModel]" in text and "p.outputModel = out.modelNodes[0]" in text
     assert "lines = out.summaryLines()" in text and "self.ui.resultLabel.text = '\\n'.join(lines)" in text
     assert "if out.warnings:" in text
     for method in ("updatePreview", "onAutoThreshold"):
         assert "self._chosenSegmentIds()" in ast.unparse(_method(method)), method
     logic = ast.unparse(_method("processManyWithResult", "BoneWatertightLogic"))
-    assert "mrml.run_many_on_nodes(" in logic
+    assert "nodes.run_many_on_nodes(" in logic
     process = ast.unparse(_method("process", "BoneWatertightLogic"))
     assert "return self.processMany(" in process  # a list of segment IDs
 
@@ -428,6 +428,7 @@ def test_auto_on_metal_ct_gives_values_the_parameter_node_accepts():
     import SimpleITK as sitk
 
     from BoneWatertightLib import mrml
+    from BoneWatertightLib.app import nodes
 
     scene = slicer.vtkMRMLScene()
     logic = slicer.vtkSlicerSegmentationsModuleLogic()
@@ -441,7 +442,7 @@ def test_auto_on_metal_ct_gives_values_the_parameter_node_accepts():
     volume = mrml.volume_node_from_sitk(scene, ct)
     mask = sitk.GetImageFromArray((r < 11).astype(np.uint8))
     seg, segId = mrml.segmentation_node_from_mask(scene, mask)
-    proposal = mrml.propose_thresholds(volume, seg, segId)
+    proposal = nodes.propose_thresholds(volume, seg, segId)
     # metal is left out of the estimate: theta_max is kept and H0 stays a bone level
     assert proposal["theta_max"] <= SCHEMA["theta_max"].maximum and proposal["h0"] < 600
     values, notes = clamp_threshold_proposal(dict(proposal, theta_max=20000.0))

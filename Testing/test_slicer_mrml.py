@@ -1,5 +1,5 @@
-"""The Slicer-facing parts of BoneWatertightLib.mrml on slicer-core's real MRML classes (no Qt,
-no mocks): the live threshold preview (cached crop, its colours, never saved), progress and
+"""The Slicer-facing parts of BoneWatertightLib (the mrml adapter, app.nodes, app.preview) on
+slicer-core's real MRML classes (no Qt, no mocks): the live threshold preview (cached crop, its colours, never saved), progress and
 Cancel from the first second of a run, the scene-close / node-removal guard, the release of
 the volume copy made under a non-linear transform, and the sitk <-> node conversions.
 
@@ -26,6 +26,9 @@ vtk = pytest.importorskip("vtk")
 from vtk.util import numpy_support as ns  # noqa: E402
 
 from BoneWatertightLib import mrml  # noqa: E402
+from BoneWatertightLib.app import nodes, run  # noqa: E402
+from BoneWatertightLib.app.preview import (PREVIEW_COLORS, PREVIEW_INITIAL_LABEL,  # noqa: E402
+                                           PREVIEW_TARGET_LABEL, ThresholdPreview)
 from BoneWatertightLib.errors import CancelledError  # noqa: E402
 from BoneWatertightLib.params import Parameters  # noqa: E402
 
@@ -128,9 +131,9 @@ def test_segment_mask_equals_a_nearest_neighbour_resample(scene):
 
 def test_preview_thresholds_a_crop_aligned_with_the_ct(scene):
     volume, seg, segId, ct, centre, radius = _nodes(scene, size=(100, 90, 60))
-    preview = mrml.ThresholdPreview(scene, margin_mm=3.0)
+    preview = ThresholdPreview(scene, margin_mm=3.0)
     node = preview.update(volume, seg, segId, h0=600.0, ht=300.0, theta_max=2500.0)
-    labels = mrml._array_view(node.GetImageData())
+    labels = mrml.array_view(node.GetImageData())
     full = sitk.GetArrayViewFromImage(ct)
     assert labels.size < full.size / 3, "the preview must be a crop around the segment"
     # the crop's voxel (0, 0, 0) is a voxel of the CT: find it and compare every label
@@ -154,7 +157,7 @@ def test_preview_thresholds_a_crop_aligned_with_the_ct(scene):
 
 def test_preview_reuses_its_crop_and_rebuilds_when_inputs_change(scene):
     volume, seg, segId, ct, centre, radius = _nodes(scene, size=(100, 90, 60))
-    preview = mrml.ThresholdPreview(scene)
+    preview = ThresholdPreview(scene)
     node = preview.update(volume, seg, segId, 300.0, 150.0, 2500.0)
     image = node.GetImageData()
     for h0 in (310.0, 320.0, 500.0):  # drag steps: the crop is reused, only thresholded again
@@ -164,7 +167,7 @@ def test_preview_reuses_its_crop_and_rebuilds_when_inputs_change(scene):
     arr = ns.vtk_to_numpy(volume.GetImageData().GetPointData().GetScalars())
     arr[:] = np.clip(arr, None, 400)
     volume.GetImageData().GetPointData().GetScalars().Modified()
-    labels = mrml._array_view(preview.update(volume, seg, segId, 500.0, 150.0, 2500.0).GetImageData())
+    labels = mrml.array_view(preview.update(volume, seg, segId, 500.0, 150.0, 2500.0).GetImageData())
     assert preview.cacheBuilds == 2 and not (labels == 2).any() and (labels == 1).any()
     # the segment painted (its labelmap modified in place, as the Segment Editor does): rebuilt
     rep = seg.GetSegmentation().GetSegment(segId).GetRepresentation(
@@ -175,7 +178,7 @@ def test_preview_reuses_its_crop_and_rebuilds_when_inputs_change(scene):
     # another (larger) segment: rebuilt, the crop follows the segment
     shape = labels.shape
     seg2, segId2 = mrml.segmentation_node_from_mask(scene, _ball_mask(ct, centre, radius + 3.0))
-    labels = mrml._array_view(preview.update(volume, seg2, segId2, 500.0, 150.0, 2500.0).GetImageData())
+    labels = mrml.array_view(preview.update(volume, seg2, segId2, 500.0, 150.0, 2500.0).GetImageData())
     assert preview.cacheBuilds == 4 and all(a > b for a, b in zip(labels.shape, shape))
     # the volume moved by a linear transform: rebuilt (the segment's box on its grid moved);
     # the label map sits under the volume's transform
@@ -190,25 +193,25 @@ def test_preview_reuses_its_crop_and_rebuilds_when_inputs_change(scene):
 
 def test_preview_colours_are_its_own_green_and_yellow_and_never_saved(scene):
     volume, seg, segId, *_ = _nodes(scene)
-    preview = mrml.ThresholdPreview(scene)
+    preview = ThresholdPreview(scene)
     node = preview.update(volume, seg, segId, 300.0, 150.0, 2500.0)
     display = node.GetDisplayNode()
     assert display is not None and display.IsA("vtkMRMLLabelMapVolumeDisplayNode")
     colours = display.GetColorNode()
     assert colours is preview.colorNode and colours.GetScene() is scene
     rgba = [0.0] * 4
-    colours.GetColor(mrml.PREVIEW_TARGET_LABEL, rgba)
+    colours.GetColor(PREVIEW_TARGET_LABEL, rgba)
     r, g, b, a = rgba
     assert g > 0.6 and r < 0.4 and b < 0.4 and a == 1.0, f"label 1 should be green, is {rgba}"
-    colours.GetColor(mrml.PREVIEW_INITIAL_LABEL, rgba)
+    colours.GetColor(PREVIEW_INITIAL_LABEL, rgba)
     r, g, b, a = rgba
     assert r > 0.8 and g > 0.8 and b < 0.3 and a == 1.0, f"label 2 should be yellow, is {rgba}"
     colours.GetColor(0, rgba)
     assert rgba[3] == 0.0  # outside both windows: transparent
     # the tooltip promises exactly these colours for these windows
     tooltip = UI_FILE.read_text(encoding="utf-8")
-    windows = {mrml.PREVIEW_TARGET_LABEL: "[HT, H0)", mrml.PREVIEW_INITIAL_LABEL: "[H0, θmax]"}
-    for label, (colour, _name, _rgb) in mrml.PREVIEW_COLORS.items():
+    windows = {PREVIEW_TARGET_LABEL: "[HT, H0)", PREVIEW_INITIAL_LABEL: "[H0, θmax]"}
+    for label, (colour, _name, _rgb) in PREVIEW_COLORS.items():
         assert f"{colour}: {windows[label]}" in tooltip
     # nothing of the preview is saved with the scene
     for n in (node, display, colours):
@@ -229,7 +232,7 @@ def test_preview_update_touches_only_the_crop(scene):
     """Each drag step thresholds the cached crop in place (the measurement of its time is
     Testing/bench_slicer.py; this checks that an update writes no more than the crop)."""
     volume, seg, segId, *_ = _nodes(scene, size=(200, 200, 160), spacing=(0.8, 0.8, 1.0))
-    preview = mrml.ThresholdPreview(scene)
+    preview = ThresholdPreview(scene)
     node = preview.update(volume, seg, segId, 300.0, 150.0, 2500.0)
     image, scalars = node.GetImageData(), node.GetImageData().GetPointData().GetScalars()
     volume_mtime = volume.GetImageData().GetMTime()
@@ -257,7 +260,7 @@ def test_run_reports_progress_before_any_work_and_cancel_there_leaves_the_scene(
 
     t0 = time.perf_counter()
     with pytest.raises(CancelledError):
-        mrml.run_on_nodes(volume, seg, segId, outputModelNode=out, progress=progress)
+        nodes.run_on_nodes(volume, seg, segId, outputModelNode=out, progress=progress)
     assert len(calls) == 1 and calls[0][1] == 0.0 and "CT" in calls[0][2]
     assert calls[0][0] - t0 < 1.0  # "progress from the first second"
     assert _node_ids(scene) == before and out.GetPolyData() is None
@@ -266,15 +269,15 @@ def test_run_reports_progress_before_any_work_and_cancel_there_leaves_the_scene(
 def test_run_progress_covers_export_import_and_pipeline_in_order(scene):
     volume, seg, segId, *_ = _nodes(scene)
     calls = []
-    mrml.run_on_nodes(volume, seg, segId, params={"spacing": 0.8, "h0": 500.0, "ht": 300.0},
+    nodes.run_on_nodes(volume, seg, segId, params={"spacing": 0.8, "h0": 500.0, "ht": 300.0},
                       progress=lambda f, m: calls.append((f, m)) or True)
     fractions = [f for f, _ in calls]
     messages = [m for _, m in calls]
     assert messages[:3] == ["Reading the CT volume", "Reading the segment", "Loading open3d"]
     assert fractions == sorted(fractions) and fractions[-1] == pytest.approx(1.0)
     first_pipeline = max(i for i, m in enumerate(messages) if m == "Loading open3d") + 1
-    assert all(f < mrml.PIPELINE_START for f in fractions[:first_pipeline])
-    assert all(f >= mrml.PIPELINE_START for f in fractions[first_pipeline:])
+    assert all(f < nodes.PIPELINE_START for f in fractions[:first_pipeline])
+    assert all(f >= nodes.PIPELINE_START for f in fractions[first_pipeline:])
     assert len(fractions) - first_pipeline > 5
 
 
@@ -284,7 +287,7 @@ def test_open3d_import_reports_progress_and_honours_cancel(tmp_path):
     script = textwrap.dedent(f"""
         import json, sys, time
         sys.path.insert(0, {str(ROOT)!r})
-        from BoneWatertightLib import mrml
+        from BoneWatertightLib.app import nodes, run
         from BoneWatertightLib.errors import CancelledError
         assert "open3d" not in sys.modules
         stamps = []
@@ -294,7 +297,7 @@ def test_open3d_import_reports_progress_and_honours_cancel(tmp_path):
         t0 = time.perf_counter()
         outcome = "done"
         try:
-            mrml.load_pipeline(mrml.RunProgress(callback))
+            run.load_pipeline(nodes.RunProgress(callback), nodes.IMPORT_START, nodes.PIPELINE_START)
         except CancelledError:
             outcome = "cancelled"
         t1 = time.perf_counter()
@@ -319,7 +322,7 @@ def test_open3d_import_reports_progress_and_honours_cancel(tmp_path):
     print(f"open3d import {duration:.2f} s, {len(full['stamps'])} reports, longest gap {gaps.max():.3f} s")
     # reports keep coming while the import runs (a tick every IMPORT_TICK_S, fewer while the
     # extension's shared library loads with the GIL held): not one report, then silence
-    assert len(full["stamps"]) >= 1 + int(0.3 * duration / mrml.IMPORT_TICK_S)
+    assert len(full["stamps"]) >= 1 + int(0.3 * duration / run.IMPORT_TICK_S)
     assert gaps.max() < max(1.0, 0.5 * duration)
     assert all(m == "Loading open3d" for _, _, m in full["stamps"])
     # Cancel at the third report: raised right there, without waiting for the import
@@ -347,13 +350,13 @@ def test_scene_close_during_a_run_cancels_and_writes_nothing(scene, when):
         if not scene.GetNumberOfNodes():
             return True
         if (when == "export" and message == "Reading the segment") or \
-                (when == "pipeline" and fraction > mrml.PIPELINE_START) or \
+                (when == "pipeline" and fraction > nodes.PIPELINE_START) or \
                 (when == "last" and fraction >= 1.0):
             scene.Clear(0)  # File > Close Scene, processed while the run pumps events
         return True
 
     with pytest.raises(CancelledError, match="scene was closed"):
-        mrml.run_on_nodes(volume, seg, segId, params={"spacing": 0.8, "h0": 500.0, "ht": 300.0},
+        nodes.run_on_nodes(volume, seg, segId, params={"spacing": 0.8, "h0": 500.0, "ht": 300.0},
                           progress=progress, addAsSegment=True, showIntermediates=True)
     assert scene.GetNumberOfNodes() == 0  # no model, no intermediates in the new scene
     assert _segment_state(seg) == segments  # nothing written into the removed segmentation
@@ -374,7 +377,7 @@ def test_removing_the_output_or_an_input_during_a_run_cancels(scene):
             return True
 
         with pytest.raises(CancelledError, match="was removed from the scene"):
-            mrml.run_on_nodes(volume, seg, segId, outputModelNode=out, progress=progress,
+            nodes.run_on_nodes(volume, seg, segId, outputModelNode=out, progress=progress,
                               params={"spacing": 0.8, "h0": 500.0, "ht": 300.0})
         assert out.GetPolyData() is None
         scene.AddNode(victim)
@@ -382,7 +385,7 @@ def test_removing_the_output_or_an_input_during_a_run_cancels(scene):
 
 def test_run_guard_stops_observing_after_the_run(scene):
     volume, seg, segId, *_ = _nodes(scene)
-    with mrml.RunGuard(scene, (volume,)) as guard:
+    with nodes.RunGuard(scene, (volume,)) as guard:
         assert guard.reason is None
     scene.Clear(0)
     guard.check()  # closed after the run: not this run's business
@@ -434,7 +437,7 @@ def test_auto_on_metal_ct_proposes_values_the_schema_accepts(scene):
     """Metal in the bone (extended-HU scale) is left out of the estimate: the proposal keeps
     theta_max, stays in the schema's ranges and is not raised by the implant."""
     ct, centre, radius = _ct_image()
-    clean = mrml.propose_thresholds(mrml.volume_node_from_sitk(scene, ct),
+    clean = nodes.propose_thresholds(mrml.volume_node_from_sitk(scene, ct),
                                     *mrml.segmentation_node_from_mask(scene, _ball_mask(ct, centre, radius + 2.0)))
     arr = sitk.GetArrayFromImage(ct).astype(np.int32)
     arr[20:24, 22:28, 28:32] = 14000  # an implant inside the bone, extended-HU scale
@@ -442,7 +445,7 @@ def test_auto_on_metal_ct_proposes_values_the_schema_accepts(scene):
     metal.CopyInformation(ct)
     volume = mrml.volume_node_from_sitk(scene, metal)
     seg, segId = mrml.segmentation_node_from_mask(scene, _ball_mask(ct, centre, radius + 2.0))
-    proposal = mrml.propose_thresholds(volume, seg, segId)
+    proposal = nodes.propose_thresholds(volume, seg, segId)
     Parameters(theta_max=float(proposal["theta_max"]), h0=float(proposal["h0"]),
                ht=float(proposal["ht"])).validate()
     assert abs(proposal["h0"] - clean["h0"]) <= 20

@@ -22,7 +22,7 @@ from typing import Optional
 from ..errors import (EXIT_CANCELLED, EXIT_CODES, EXIT_FAILED, EXIT_INTERNAL, EXIT_OK,
                       CancelledBySignal, DependencyError, InputError, exit_code_for, one_line)
 from ..io import files as bwfiles
-from ..params import preset_name
+from ..params import PRESETS_REMOVED
 from . import run
 from .options import make_parameters, parameter_overrides, parameters_from_args
 
@@ -39,7 +39,7 @@ WORKER_STOP_SECONDS = 30.0
 # case lists
 
 def cases_from_csv(path: str) -> list:
-    """Tasks from a CSV with columns ct,seg,label,out[,preset][,case]."""
+    """Tasks from a CSV with columns ct,seg,label,out[,case]."""
     folder = os.path.dirname(os.path.abspath(path))
     with open(path, newline="", encoding="utf-8-sig") as f:
         reader = csv.DictReader(f)
@@ -49,7 +49,7 @@ def cases_from_csv(path: str) -> list:
         missing = [c for c in ("ct", "seg", "label", "out") if c not in columns]
         if missing:
             raise InputError(f"Cases file {path} lacks column(s) {', '.join(missing)}; "
-                             "the header must be ct,seg,label,out[,preset].")
+                             "the header must be ct,seg,label,out[,case].")
         tasks = []
         for number, raw in enumerate(reader, start=1):
             row = {(k or "").strip().lower(): (v or "").strip() for k, v in raw.items()}
@@ -60,11 +60,12 @@ def cases_from_csv(path: str) -> list:
                 return p if not p or os.path.isabs(p) else os.path.join(folder, p)
             case = row.get("case") or f"row{number}"
             task = {"case": case, "ct": resolve(row["ct"]), "seg": resolve(row["seg"]),
-                    "label": row["label"], "out": resolve(row["out"]),
-                    "preset": row.get("preset") or None}
+                    "label": row["label"], "out": resolve(row["out"])}
             empty = [c for c in ("ct", "seg", "label", "out") if not row.get(c)]
             if empty:
                 task["error"] = f"row {number} of {path} has no {', '.join(empty)}"
+            elif row.get("preset"):
+                task["error"] = f"row {number} of {path}: {PRESETS_REMOVED}"
             tasks.append(task)
     if not tasks:
         raise InputError(f"Cases file {path} lists no case.")
@@ -108,7 +109,7 @@ def cases_from_folder(folder: str, labels: list, out_template: str) -> list:
         ct, seg = find_case_files(os.path.join(folder, case))
         for label in labels:
             task = {"case": case, "ct": ct or "", "seg": seg if isinstance(seg, str) else "",
-                    "label": label, "out": out_template.replace("{case}", case), "preset": None}
+                    "label": label, "out": out_template.replace("{case}", case)}
             if ct is None:
                 task["error"] = (f"no CT in {os.path.join(folder, case)} (expected one of "
                                  f"{', '.join(CT_NAMES)} or a ct/ DICOM folder)")
@@ -145,15 +146,13 @@ def run_task(task: dict, common: dict) -> dict:
             import SimpleITK as sitk
 
             sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(int(threads))
-        params = make_parameters(task.get("preset") or common.get("preset"),
-                                 common.get("overrides", {}))
+        params = make_parameters(common.get("overrides", {}))
         intermediates = common.get("intermediates")
         # The report is in the case's transaction: surface and report appear together.
         report = run.run_files(
             task["ct"], task["seg"], task["label"], task["out"], params, case=task["case"],
             coordinate_system=common.get("coordinate_system", "LPS"),
-            intermediates_dir=intermediates, report_path=common.get("report"),
-            inputs={"preset": task.get("preset") or common.get("preset")})
+            intermediates_dir=intermediates, report_path=common.get("report"))
         dist = report.distance_to_constraints_mm
         row.update(status="ok", exit_code=EXIT_OK, out=report.output.path,
                    n_vertices=report.output.n_vertices, n_faces=report.output.n_faces,
@@ -363,19 +362,13 @@ def run_from_args(args, parser) -> int:
         if args.label or args.out:
             parser.error("with a cases CSV, label and out come from its columns")
         tasks = cases_from_csv(args.cases)
-    for task in tasks:
-        if task.get("preset"):
-            try:
-                preset_name(task["preset"])
-            except InputError as exc:
-                task["error"] = one_line(exc)
     if args.report and len(tasks) > 1 and "{case}" not in args.report:
         parser.error("with several cases --report needs a {case} placeholder")
     intermediates = None
     if args.save_intermediates:
         intermediates = os.path.join(args.save_intermediates, "{case}")
     cpus = os.cpu_count() or 1
-    common = {"preset": args.preset, "overrides": overrides,
+    common = {"overrides": overrides,
               "coordinate_system": "RAS" if args.ras else "LPS", "report": args.report,
               "intermediates": intermediates,
               "threads": max(1, cpus // max(1, args.workers)) if args.workers > 1 else None}

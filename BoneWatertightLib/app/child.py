@@ -54,6 +54,7 @@ from .. import errors as _errors
 from ..errors import (EXIT_CANCELLED, EXIT_DEPENDENCY, EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL,
                       EXIT_OUTPUT, BoneWatertightError, CancelledError, DependencyError,
                       EmptySegmentError, InputError, OutputError, ReconstructionError)
+from ..io import files as bwfiles
 from ..params import SCHEMA, Parameters
 # One bone of a child run is the pipeline's own result type.
 from ..pipeline import ReconstructionResult as ChildBone
@@ -220,17 +221,15 @@ def joint_report_from_dict(data: dict):
 
 
 def _joint_report_of_one(case: dict, pipeline):
-    """The JointReport of a one-bone run, whose JSON report is the bone's CaseReport: the
-    shared parts of its pipeline report (grid, thresholds, the shared stage times)."""
-    from ..report import JointReport, StageTimes
+    """The JointReport of a one-bone run, whose JSON report is the bone's CaseReport: grid,
+    thresholds and ownership from the bone's pipeline report, and its times (all of a
+    one-bone run's time is its bone's)."""
+    from ..report import JointReport
 
-    shared = StageTimes()
-    for name in ("import_open3d", "prepare", "filter", "ownership", "territories", "contacts",
-                 "total"):
-        setattr(shared, name, getattr(pipeline.timings, name, 0.0))
     return JointReport(version=pipeline.version, parameters=dict(pipeline.parameters),
                        input=dict(pipeline.input), thresholds=dict(pipeline.thresholds),
-                       ownership=dict(pipeline.ownership), pairs=[], timings=shared,
+                       ownership=dict(pipeline.ownership), pairs=[],
+                       timings=dataclasses.replace(pipeline.timings),
                        neighbours=list(case.get("inputs", {}).get("neighbours") or []),
                        coordinate_system=pipeline.coordinate_system, units=pipeline.units)
 
@@ -281,24 +280,14 @@ def remove_stale_folders(root: Optional[str] = None, now: Optional[float] = None
     root = root or tempfile.gettempdir()
     now = time.time() if now is None else now
     removed = []
-    try:
-        names = os.listdir(root)
-    except OSError:
-        return removed
-    for name in names:
-        if not name.startswith(FOLDER_PREFIX):
-            continue
-        pid_text = name[len(FOLDER_PREFIX):].split("-", 1)[0]
-        if not pid_text.isdigit() or int(pid_text) == os.getpid():
-            continue
+    for name in bwfiles.list_names(root):
+        pid = name[len(FOLDER_PREFIX):].split("-", 1)[0]
+        if not name.startswith(FOLDER_PREFIX) or not pid.isdigit() or bwfiles.pid_alive(int(pid)):
+            continue  # not a run's folder, or its process is alive (this one included)
         path = os.path.join(root, name)
         try:
             if now - os.lstat(path).st_mtime < STALE_FOLDER_S or not os.path.isdir(path):
                 continue
-            os.kill(int(pid_text), 0)
-            continue  # its process is alive
-        except ProcessLookupError:
-            pass
         except OSError:
             continue
         shutil.rmtree(path, ignore_errors=True)
@@ -801,7 +790,6 @@ class ChildRun:
             return {}
         import numpy as np
 
-        from ..io import files as bwfiles
         from ..io import meshes
 
         prefix = bwfiles.name_part(name) + "_"

@@ -33,7 +33,7 @@ from ..io import files as bwfiles
 from ..io import images, segmentations
 from ..report import case_summary_line, pair_summary_line
 from . import run
-from .options import (Parser, add_io_options, add_parameter_options, add_preset_option,
+from .options import (Parser, add_io_options, add_parameter_options, add_removed_options,
                       parameters_from_args)
 
 PROG = "bonewatertight"
@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=_EPILOG,
     )
     add_io_options(parser)
-    add_preset_option(parser)
+    add_removed_options(parser)
     parser.add_argument("-q", "--quiet", action="store_true",
                         help="Print nothing but errors.")
     parser.add_argument("-v", "--verbose", action="store_true",
@@ -65,7 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "flushed at once.")
     batch = parser.add_argument_group("batch (many cases)")
     batch.add_argument("--cases", metavar="CSV|DIR",
-                       help="Run many cases: a CSV (columns ct,seg,label,out[,preset]) or a "
+                       help="Run many cases: a CSV (columns ct,seg,label,out[,case]) or a "
                             "folder of case folders (see below).")
     batch.add_argument("--workers", type=int, default=1, metavar="N",
                        help="Worker processes for --cases (default 1).")
@@ -91,7 +91,7 @@ batch folder layout (--cases DIR):
                                                       beside it allows segment names)
   Give --label (repeatable) and --out as a template with {case} and {label}, e.g.
   --out results/{case}_{label}.stl. A CSV (--cases cases.csv) instead lists one surface per
-  row: ct,seg,label,out[,preset]; relative paths are relative to the CSV's folder.
+  row: ct,seg,label,out[,case]; relative paths are relative to the CSV's folder.
 
 exit codes:
   0 success, 2 bad input, 3 reconstruction failed (batch: some case failed),
@@ -108,7 +108,7 @@ outputs:
 
 example:
   bonewatertight --ct ct.nrrd --seg bones.seg.nrrd --label femur_left \\
-      --preset femur --out femur_left.stl --report femur_left.json
+      --out femur_left.stl --report femur_left.json
 """
 
 
@@ -330,8 +330,7 @@ def _run_single(args, parser) -> int:
                 pic = os.path.splitext(pic)[0] + f"_{run.safe_name(label_names[v])}.png"
             pictures[v] = pic
     inputs = {"ct": os.path.abspath(args.ct), "seg": os.path.abspath(args.seg),
-              "ct_size": list(ct.GetSize()), "ct_spacing": list(ct.GetSpacing()),
-              "preset": args.preset}
+              "ct_size": list(ct.GetSize()), "ct_spacing": list(ct.GetSpacing())}
     tx = bwfiles.OutputTransaction()
     try:
         with tx:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 
 from ..errors import InputError
-from ..params import PRESETS, SCHEMA, STAGES, ParamSpec, Parameters, apply_preset
+from ..params import PARAMETER_GROUPS, PRESETS_REMOVED, SCHEMA, ParamSpec, Parameters
 
 PARAM_DEST_PREFIX = "param_"
 
@@ -41,13 +41,13 @@ def _parser_for(spec: ParamSpec):
 
 def add_parameter_options(parser: argparse.ArgumentParser) -> None:
     """One option per schema parameter (``--h0``, ``--poisson-depth``, ``--no-refine-edges``...),
-    grouped by pipeline stage. Options left out keep the preset's (or the paper's) value, so
+    grouped by pipeline stage. Options left out keep the default value, so
     their default is SUPPRESS; values are checked by :meth:`Parameters.validate`."""
     groups = {}
     for spec in SCHEMA.values():
         if spec.stage not in groups:
             groups[spec.stage] = parser.add_argument_group(
-                f"parameters: {STAGES[spec.stage]}")
+                f"parameters: {PARAMETER_GROUPS[spec.stage]}")
         group = groups[spec.stage]
         dest = PARAM_DEST_PREFIX + spec.name
         if spec.kind is bool:
@@ -95,10 +95,20 @@ def add_io_options(parser: argparse.ArgumentParser) -> None:
                                "default), none, or a comma-separated list of labels.")
 
 
-def add_preset_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", choices=sorted(PRESETS),
-                        help="Parameter preset (sets only its own thresholds and morphology "
-                             "fields); single parameter options override it.")
+class _Removed(argparse.Action):
+    """An option that no longer exists (hidden): using it is a usage error that says why."""
+
+    def __init__(self, option_strings, dest, reason: str, **kwargs):
+        super().__init__(option_strings, dest, help=argparse.SUPPRESS, **kwargs)
+        self.reason = reason
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error(f"{option_string}: {self.reason}")
+
+
+def add_removed_options(parser: argparse.ArgumentParser) -> None:
+    """``--preset``: refused with the reason rather than as an unknown option."""
+    parser.add_argument("--preset", action=_Removed, reason=PRESETS_REMOVED)
 
 
 def parameter_overrides(args: argparse.Namespace) -> dict:
@@ -107,18 +117,15 @@ def parameter_overrides(args: argparse.Namespace) -> dict:
             if k.startswith(PARAM_DEST_PREFIX)}
 
 
-def make_parameters(preset_name, overrides: dict) -> Parameters:
-    """Validated Parameters: the defaults, the preset's fields, then the overrides."""
-    params = Parameters()
-    if preset_name:
-        params = apply_preset(params, preset_name)
-    return params.replace(**overrides).validate()
+def make_parameters(overrides: dict) -> Parameters:
+    """Validated Parameters: the defaults with the overrides."""
+    return Parameters().replace(**overrides).validate()
 
 
 def parameters_from_args(args: argparse.Namespace) -> Parameters:
-    """Validated Parameters from parsed arguments (``--preset``, the parameter options and
+    """Validated Parameters from parsed arguments (the parameter options and
     ``--save-intermediates``)."""
     overrides = parameter_overrides(args)
     if getattr(args, "save_intermediates", None):
         overrides["keep_intermediates"] = True
-    return make_parameters(getattr(args, "preset", None), overrides)
+    return make_parameters(overrides)

@@ -13,8 +13,11 @@ removes every staged file and leaves earlier outputs as they were.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import signal
+import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
@@ -33,20 +36,75 @@ CANCEL_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "
                        if hasattr(signal, name))
 
 
-def _pipeline_entry(name: str):
-    """An entry function of the pipeline, or DependencyError when it cannot be imported."""
+_PIPELINE_MODULE = __package__.rsplit(".", 1)[0] + ".pipeline"
+# While the pipeline and open3d are imported in a helper thread (seconds on first use), the
+# progress callback is called at least this often (s): a panel keeps painting, Cancel is honoured.
+IMPORT_TICK_S = 0.1
+# The import's progress approaches its end with this time constant (s) (its length is unknown).
+IMPORT_TIME_CONSTANT_S = 3.0
+
+
+def _import_pipeline(with_open3d: bool):
+    from .. import pipeline
+
+    if with_open3d:
+        from ..stages.poisson import import_open3d
+
+        import_open3d()
+    return pipeline
+
+
+def load_pipeline(progress=None, start: float = 0.0, end: float = 0.0):
+    """The pipeline module, or DependencyError when it (or open3d) cannot be imported.
+
+    Without ``progress`` a plain import (open3d is imported by the pipeline's first stage).
+    With it, the pipeline and open3d are imported in a helper thread while this thread calls
+    ``progress(fraction in [start, end], "Loading open3d")`` every IMPORT_TICK_S, so a panel
+    that runs in-process keeps painting and Cancel (``progress`` raising, e.g. CancelledError)
+    is honoured; only imports happen in the thread. Should the threaded import fail for
+    another reason than a missing package, it is retried on this thread.
+    """
+    if progress is not None:
+        progress(start, "Loading open3d")
+        if "open3d" not in sys.modules or _PIPELINE_MODULE not in sys.modules:
+            failure = []
+
+            def work():
+                try:
+                    _import_pipeline(True)
+                except BaseException as exc:  # handed to this thread
+                    failure.append(exc)
+
+            # not a daemon: after a Cancel the import finishes in the background, and an
+            # interpreter that exits meanwhile waits for it instead of tearing a half-loaded
+            # extension down
+            thread = threading.Thread(target=work, name="BoneWatertight import", daemon=False)
+            t0 = time.monotonic()
+            thread.start()
+            while thread.is_alive():
+                thread.join(IMPORT_TICK_S)
+                if thread.is_alive():
+                    elapsed = time.monotonic() - t0
+                    progress(start + (end - start) * (1.0 - math.exp(-elapsed / IMPORT_TIME_CONSTANT_S)),
+                             "Loading open3d")
+            if failure and isinstance(failure[0], (ImportError, DependencyError)):
+                raise _as_dependency_error(failure[0])
+            # else, e.g. a library that insists on the main thread: imported below instead
     try:
-        from .. import pipeline
+        return _import_pipeline(progress is not None)
     except ImportError as exc:
-        if isinstance(exc, DependencyError):
-            raise
-        raise DependencyError(f"The reconstruction pipeline cannot be imported: {exc}") from exc
-    return getattr(pipeline, name)
+        raise _as_dependency_error(exc) from exc
+
+
+def _as_dependency_error(exc: BaseException) -> BaseException:
+    if isinstance(exc, DependencyError) or not isinstance(exc, ImportError):
+        return exc
+    return DependencyError(f"The reconstruction pipeline cannot be imported: {exc}")
 
 
 def load_reconstruct():
     """The pipeline's entry function, or DependencyError when it cannot be imported."""
-    return _pipeline_entry("reconstruct")
+    return load_pipeline().reconstruct
 
 
 def safe_name(text: str) -> str:
@@ -237,40 +295,68 @@ def run_case(ct, mask, segment_name: str, out: str, params: Parameters, *,
     t0 = time.perf_counter()
     result = reconstruct(ct, mask, params, progress)
     t_reconstruct = time.perf_counter() - t0
-    surface = result.surface
 
     with case_transaction(transaction) as tx:
         staged = stage_outputs(tx, result, ct, segment_name, out,
                                coordinate_system=coordinate_system, picture=picture,
                                intermediates_dir=intermediates_dir, also=also)
-        report = CaseReport(
-            version=__version__,
-            inputs=dict(inputs or {}, segment_name=segment_name),
-            output=OutputInfo(
-                path=os.path.abspath(out), format=bwfiles.extension(out),
-                coordinate_system=coordinate_system, n_vertices=int(surface.n_vertices),
-                n_faces=int(surface.n_faces), picture=staged.picture,
-                picture_error=staged.picture_error, intermediates=staged.intermediates,
-                also=[os.path.abspath(p) for p in also],
-                report=os.path.abspath(report_path) if report_path else None),
-            coordinate_system=coordinate_system,
-            checks=result.report.checks,
-            distance_to_constraints_mm=DistanceSummary.of(result.distance_to_constraints),
-            parameters=params.to_dict(),
-            timings_s=CaseTimes(read=read_seconds, reconstruct=t_reconstruct,
-                                render=staged.render_seconds, write=staged.write_seconds,
-                                stages=result.report.timings),
-            pipeline=result.report,
-        )
-        report.timings_s.total = read_seconds + time.perf_counter() - t_start
+        report = _case_report(result, params, staged, out=out, also=also,
+                              coordinate_system=coordinate_system,
+                              inputs=dict(inputs or {}, segment_name=segment_name),
+                              read_seconds=read_seconds, t_reconstruct=t_reconstruct,
+                              t_start=t_start, report_path=report_path)
         if report_path:
             write_report(report, report_path, transaction=tx)
     return report
 
 
+def _case_report(result, params: Parameters, staged: StagedOutputs, *, out: str, also,
+                 coordinate_system: str, inputs: dict, read_seconds: float,
+                 t_reconstruct: float, t_start: float, report_path: Optional[str],
+                 pairs: Optional[list] = None) -> CaseReport:
+    """The CaseReport of one bone whose files were staged (``staged``) into ``out``/``also``."""
+    surface = result.surface
+    report = CaseReport(
+        version=__version__,
+        inputs=inputs,
+        output=OutputInfo(
+            path=os.path.abspath(out), format=bwfiles.extension(out),
+            coordinate_system=coordinate_system, n_vertices=int(surface.n_vertices),
+            n_faces=int(surface.n_faces), picture=staged.picture,
+            picture_error=staged.picture_error, intermediates=staged.intermediates,
+            also=[os.path.abspath(p) for p in also],
+            report=os.path.abspath(report_path) if report_path else None),
+        coordinate_system=coordinate_system,
+        checks=result.report.checks,
+        distance_to_constraints_mm=DistanceSummary.of(result.distance_to_constraints),
+        parameters=params.to_dict(),
+        timings_s=CaseTimes(read=read_seconds, reconstruct=t_reconstruct,
+                            render=staged.render_seconds, write=staged.write_seconds,
+                            stages=result.report.timings),
+        pipeline=result.report,
+        pairs=list(pairs or []),
+    )
+    report.timings_s.total = read_seconds + time.perf_counter() - t_start
+    return report
+
+
 def load_reconstruct_many():
     """The several-bone pipeline entry, or DependencyError when it cannot be imported."""
-    return _pipeline_entry("reconstruct_many")
+    return load_pipeline().reconstruct_many
+
+
+def reconstruct_joint(ct, labels, targets: Sequence[int], params: Parameters, progress=None, *,
+                      names: Optional[dict] = None, neighbours="auto", keep_going: bool = False):
+    """Reconstruct the bones ``targets`` of a label image together, in this process.
+
+    The one call of the several-bone pipeline for every front end: :func:`run_joint` (the
+    command line, hence also a child run of :class:`.child.ChildRun`, and the Slicer batch
+    script) and the in-process run on MRML nodes (:func:`.nodes.run_many_on_nodes`). Arguments
+    as :func:`BoneWatertightLib.pipeline.reconstruct_many`; returns its JointResult.
+    DependencyError when the pipeline cannot be imported.
+    """
+    return load_reconstruct_many()(ct, labels, [int(t) for t in targets], params, progress,
+                                   neighbours=neighbours, names=names, keep_going=keep_going)
 
 
 @dataclass
@@ -330,10 +416,9 @@ def run_joint(ct, labels, targets: Sequence[int], names: dict, outputs: dict,
         check_surface_path(outputs[value])
         for path in (also or {}).get(value, ()):
             check_surface_path(path, "an extra output")
-    reconstruct_many = load_reconstruct_many()
     t0 = time.perf_counter()
-    joint = reconstruct_many(ct, labels, list(targets), params, progress, neighbours=neighbours,
-                             names=names, keep_going=keep_going)
+    joint = reconstruct_joint(ct, labels, targets, params, progress, names=names,
+                              neighbours=neighbours, keep_going=keep_going)
     t_reconstruct = time.perf_counter() - t0
     reports, failures = [], []
     with case_transaction(transaction) as tx:
@@ -342,34 +427,19 @@ def run_joint(ct, labels, targets: Sequence[int], names: dict, outputs: dict,
                 failures.append((result.name, result.error))
                 continue
             value = result.label
-            surface = result.surface
             staged = stage_outputs(tx, result, ct, result.name, outputs[value],
                                    coordinate_system=coordinate_system,
                                    picture=(pictures or {}).get(value),
                                    intermediates_dir=intermediates_dir,
                                    also=(also or {}).get(value, ()))
-            report = CaseReport(
-                version=__version__,
+            report = _case_report(
+                result, params, staged, out=outputs[value], also=(also or {}).get(value, ()),
+                coordinate_system=coordinate_system,
                 inputs=dict(inputs or {}, segment_name=result.name, label=value,
                             neighbours=joint.report.neighbours),
-                output=OutputInfo(
-                    path=os.path.abspath(outputs[value]), format=bwfiles.extension(outputs[value]),
-                    coordinate_system=coordinate_system, n_vertices=int(surface.n_vertices),
-                    n_faces=int(surface.n_faces), picture=staged.picture,
-                    picture_error=staged.picture_error, intermediates=staged.intermediates,
-                    also=[os.path.abspath(p) for p in (also or {}).get(value, ())],
-                    report=os.path.abspath(report_path) if report_path else None),
-                coordinate_system=coordinate_system,
-                checks=result.report.checks,
-                distance_to_constraints_mm=DistanceSummary.of(result.distance_to_constraints),
-                parameters=params.to_dict(),
-                timings_s=CaseTimes(read=read_seconds, reconstruct=t_reconstruct,
-                                    render=staged.render_seconds, write=staged.write_seconds,
-                                    stages=result.report.timings),
-                pipeline=result.report,
-                pairs=[p for p in joint.pairs if result.name in (p.a, p.b)],
-            )
-            report.timings_s.total = read_seconds + time.perf_counter() - t_start
+                read_seconds=read_seconds, t_reconstruct=t_reconstruct, t_start=t_start,
+                report_path=report_path,
+                pairs=[p for p in joint.pairs if result.name in (p.a, p.b)])
             reports.append(report)
         if report_path and reports:
             if "{label}" in report_path:

@@ -144,7 +144,7 @@ class PreviewController:
         self.shown = False
 
     def thresholdsChanged(self, enabled: bool, running: bool) -> bool:
-        """A threshold changed (slider step, typed value, preset, Auto); True if shown."""
+        """A threshold changed (slider step, typed value, Auto); True if shown."""
         if not enabled or running:
             return False
         self._show()

@@ -94,7 +94,8 @@ def defer_signal(signum: int) -> bool:
 # ----------------------------------------------------------------------------------------
 # temporary names and stale leftovers
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` of this machine still runs (another user's process counts)."""
     if pid <= 0:
         return False
     if pid == os.getpid():
@@ -108,6 +109,14 @@ def _pid_alive(pid: int) -> bool:
     except OSError:
         return True
     return True
+
+
+def list_names(folder: PathLike) -> List[str]:
+    """The names in ``folder``; none when it cannot be listed (housekeeping ignores that)."""
+    try:
+        return os.listdir(os.fspath(folder))
+    except OSError:
+        return []
 
 
 def is_temporary_name(name: str) -> bool:
@@ -126,11 +135,7 @@ def remove_stale(folder: PathLike, now: Optional[float] = None) -> List[str]:
     folder = os.fspath(folder)
     now = time.time() if now is None else now
     removed = []
-    try:
-        names = os.listdir(folder)
-    except OSError:
-        return removed
-    for name in names:
+    for name in list_names(folder):
         if not name.startswith("."):
             continue
         match = _TEMP_RE.match(name)
@@ -142,7 +147,7 @@ def remove_stale(folder: PathLike, now: Optional[float] = None) -> List[str]:
         except OSError:
             continue
         dead = (match is not None and match.group("host") == _HOST
-                and not _pid_alive(int(match.group("pid"))))
+                and not pid_alive(int(match.group("pid"))))
         if dead or age > STALE_SECONDS:
             try:
                 os.remove(path)

@@ -23,10 +23,10 @@ from __future__ import annotations
 
 import numpy as np
 import SimpleITK as sitk
-from scipy import ndimage
 
 from ..errors import EmptySegmentError, ThresholdError
 from ..mesh.distance import distance_inside, distance_outside
+from .prepare import bbox_slices, on_grid_of
 
 HT_FRACTION = 0.08
 H0_FRACTION = 0.19
@@ -131,21 +131,13 @@ def propose_thresholds(ct: sitk.Image, mask: sitk.Image, theta_max: float = 2500
     ``mask`` is the segment (any grid, resampled nearest-neighbour onto the CT grid).
     Raises EmptySegmentError for an empty mask and ThresholdError without bone contrast.
     """
-    same = (ct.GetSize() == mask.GetSize()
-            and np.allclose(ct.GetOrigin(), mask.GetOrigin(), atol=1e-4)
-            and np.allclose(ct.GetSpacing(), mask.GetSpacing(), atol=1e-6)
-            and np.allclose(ct.GetDirection(), mask.GetDirection(), atol=1e-6))
-    m = sitk.Cast(mask != 0, sitk.sitkUInt8)
-    if not same:
-        m = sitk.Resample(m, ct, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
-    arr = sitk.GetArrayViewFromImage(m) > 0
+    on_ct = on_grid_of(sitk.Cast(mask != 0, sitk.sitkUInt8), ct)  # kept: the view below reads it
+    arr = sitk.GetArrayViewFromImage(on_ct) > 0
     if not arr.any():
         raise EmptySegmentError("The segment is empty; thresholds cannot be proposed.")
     # Work on the segment's box + margin of the CT grid only.
     sp = np.array(ct.GetSpacing())
-    nz = np.nonzero(arr)
-    pad = np.ceil(2 * SHELL_MM / sp[::-1]).astype(int) + 1
-    box = tuple(slice(max(0, int(a.min()) - p), int(a.max()) + p + 1) for a, p in zip(nz, pad))
+    box = bbox_slices(arr, np.ceil(2 * SHELL_MM / sp[::-1]).astype(int) + 1)
     values = sitk.GetArrayViewFromImage(ct)[box].astype(np.float64)
     coarse = float(max(max(mask.GetSpacing()), max(sp)))
     soft, cortex = tissue_levels(values, arr[box], arr[box], sp, coarse)

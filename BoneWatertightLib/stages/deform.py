@@ -95,6 +95,7 @@ class Deformer:
         self.LtL = (L.T @ L).tocsr()
         self.avg = (sp.identity(n, format="csr") - L).tocsr()  # D^-1 A: 1-ring mean
         self.history = []
+        self.last_step: dict = {}
         self.fallbacks = fallbacks
 
     def _note(self, what, count, unit, where=""):
@@ -122,28 +123,40 @@ class Deformer:
         psi[~matched] = v[~matched]
         return psi, matched, inside
 
+    @staticmethod
+    def control_weights(matched, stationary=None, stable: bool = False) -> np.ndarray:
+        """omega (§2.4) as (n,) float: 1 for the matched vertices, for the stationary ones
+        (moved less than STATIONARY_MOVE d* in the previous iteration) and, at the stable
+        stage, for every vertex; 0 (free) otherwise."""
+        control = np.array(matched, dtype=bool)
+        if stationary is not None:
+            control |= stationary
+        if stable:
+            control[:] = True
+        return control.astype(np.float64)
+
     def solve(self, rhs, diag_extra, alpha, beta, x0):
         A = (alpha * self.LtL + sp.diags(diag_extra + beta)).tocsr()
         return solve_spd(A, rhs, x0, self.fallbacks, "deform")
 
     def step(self, j, total, alpha, beta, full_check=True, stationary=None, stable=False):
+        """One iteration j of ``total``: ``(new vertices, matched, 0)``, or ``(None, matched,
+        faces still bad)`` when no attempt gave a flip-free (with ``full_check``: also
+        intersection-free) step. ``self.last_step`` says how many vertices were control
+        vertices and how many attempts (beta doubled after each) it took."""
         v = self.v
         normals = vertex_normals(v, self.f)
         psi, matched, inside = self.match(v, normals)
-        # Control weights: matched vertices; stationary ones; all at the stable stage.
-        control = matched.copy()
-        if stationary is not None:
-            control |= stationary
-        if stable:
-            control[:] = True
-        w = control.astype(np.float64)
+        w = self.control_weights(matched, stationary, stable)
         c = (psi - v) / float(max(total - j + 1, 1))
         c[~matched] = 0.0
         psi = np.where(matched[:, None], psi, v)
         lap_rhs = self.LtL @ v
         rhs = w[:, None] * psi + alpha * (lap_rhs + w[:, None] * (v + c)) + beta * v
         diag_extra = w + alpha * w
+        self.last_step = {"controlled": int(w.sum()), "attempts": 0}
         for attempt in range(STEP_ATTEMPTS):
+            self.last_step["attempts"] = attempt + 1
             new = self.solve(rhs, diag_extra, alpha, beta, v)
             new, ok, bad = safe_update(v, new, self.f, intersections=False)
             if ok and full_check:
@@ -177,7 +190,8 @@ class Deformer:
                                               full_check=last or j % FULL_CHECK_EVERY == 0,
                                               stationary=stationary, stable=stable)
             if new is None:
-                self.history.append({"iteration": j, "rejected": True, "flipped": flipped})
+                self.history.append({"iteration": j, "rejected": True, "flipped": flipped,
+                                     **self.last_step})
                 self._note(f"iteration {j} still flipped triangles after {STEP_ATTEMPTS} "
                            "stiffer attempts: the deformation stopped at the iterate before it",
                            flipped, "faces")
@@ -186,6 +200,7 @@ class Deformer:
             self.v = new
             stationary = move < STATIONARY_MOVE * self.d
             rec = {"iteration": j, "alpha": alpha, "beta": beta, "matched": int(matched.sum()),
+                   "stable": stable, **self.last_step,
                    "mean_move": float(move.mean()), "max_move": float(move.max())}
             self.history.append(rec)
             if progress:

@@ -1,8 +1,11 @@
-"""Stage 1: validate the inputs, bring the segment onto the CT grid, crop, resample isotropically.
+"""Stage 1: validate the inputs, bring the segments onto the CT grid, crop, resample isotropically.
 
 Everything downstream works on a :class:`Grid`: an isotropic voxel grid whose axes keep the CT's
 direction matrix. Geometry is computed in "grid millimetres" (index * spacing, x-y-z order) and
 mapped to physical LPS only at the end; because the map is rigid, distances are the same in both.
+:func:`prepare_labels` makes the working grid of every run (one bone is a label map with one
+label). The grid helpers the stages share live here too: :func:`same_grid` / :func:`on_grid_of`
+(an image on another image's grid) and :func:`bbox_slices` (a mask's padded bounding box).
 """
 
 from __future__ import annotations
@@ -57,15 +60,6 @@ class Grid:
         return np.asarray(n, dtype=np.float64) @ self.direction.T
 
 
-@dataclass
-class Prepared:
-    grid: Grid
-    ct: np.ndarray          # float32 (z, y, x) HU on the working grid
-    segment: np.ndarray     # bool (z, y, x): the rough segment on the working grid
-    ct_spacing: tuple       # original CT spacing (x, y, z), for the report
-    info: dict
-
-
 def validate_ct(ct: sitk.Image) -> None:
     if not isinstance(ct, sitk.Image):
         raise VolumeTypeError("No CT volume was given (expected a SimpleITK image).")
@@ -94,34 +88,32 @@ def _looks_like_labelmap(arr: np.ndarray) -> bool:
     return values.min() >= 0 and len(values) <= 16
 
 
-def segment_on_ct_grid(ct: sitk.Image, mask: sitk.Image) -> sitk.Image:
-    """Nearest-neighbour resample of the segment onto the CT grid (any source geometry)."""
-    if not isinstance(mask, sitk.Image):
-        raise EmptySegmentError("No segment was given: select the rough segment of the bone.")
-    if mask.GetDimension() != 3:
-        raise InputError(f"The segment is {mask.GetDimension()}-D; a 3-D label map is needed.")
-    if mask.GetNumberOfComponentsPerPixel() != 1:
-        raise InputError("The segment has several components per voxel; pass a single label map.")
-    binary = sitk.Cast(sitk.NotEqual(mask, 0), sitk.sitkUInt8)
-    stats = sitk.StatisticsImageFilter()
-    stats.Execute(binary)
-    if stats.GetSum() == 0:
-        raise EmptySegmentError("The segment is empty: paint at least a rough outline of the bone.")
-    same = (mask.GetSize() == ct.GetSize()
-            and np.allclose(mask.GetOrigin(), ct.GetOrigin(), atol=1e-4)
-            and np.allclose(mask.GetSpacing(), ct.GetSpacing(), atol=1e-6)
-            and np.allclose(mask.GetDirection(), ct.GetDirection(), atol=1e-6))
-    if same:
-        return binary
-    # A coarse segment resampled by nearest neighbour onto a fine CT keeps its blocky outline; that
-    # is fine: the segment only says which bone and roughly where.
-    on_ct = sitk.Resample(binary, ct, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
-    stats.Execute(on_ct)
-    if stats.GetSum() == 0:
-        raise NoOverlapError(
-            "The segment and the CT volume do not overlap in physical space: check that the segment "
-            "was drawn on this CT (or on a volume with the same patient coordinates).")
-    return on_ct
+def same_grid(a: sitk.Image, b: sitk.Image) -> bool:
+    """Whether two 3-D images share size, origin, spacing and direction (to the precision a
+    geometry keeps through a file: 1e-4 mm for the origin, 1e-6 for spacing and direction)."""
+    return (a.GetSize() == b.GetSize()
+            and np.allclose(a.GetOrigin(), b.GetOrigin(), atol=1e-4)
+            and np.allclose(a.GetSpacing(), b.GetSpacing(), atol=1e-6)
+            and np.allclose(a.GetDirection(), b.GetDirection(), atol=1e-6))
+
+
+def on_grid_of(image: sitk.Image, reference: sitk.Image) -> sitk.Image:
+    """``image`` resampled nearest-neighbour onto ``reference``'s grid (0 outside it), keeping
+    its pixel type; ``image`` itself when it is on that grid already."""
+    if same_grid(image, reference):
+        return image
+    return sitk.Resample(image, reference, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
+                         image.GetPixelID())
+
+
+def bbox_slices(mask: np.ndarray, pad) -> tuple:
+    """Slices of ``mask``'s bounding box grown by ``pad`` voxels (one number, or one per axis
+    in the array's order), clipped to the array. ``mask`` must have a True voxel."""
+    pads = np.broadcast_to(np.asarray(pad, dtype=int), (mask.ndim,))
+    idx = [np.nonzero(mask.any(axis=tuple(a for a in range(mask.ndim) if a != ax)))[0]
+           for ax in range(mask.ndim)]
+    return tuple(slice(max(0, int(i.min()) - p), min(n, int(i.max()) + p + 1))
+                 for i, n, p in zip(idx, mask.shape, pads))
 
 
 def auto_spacing(extent_mm: np.ndarray) -> float:
@@ -172,89 +164,8 @@ def check_memory(extent_mm: np.ndarray, spacing: float, max_memory_gb: float) ->
         f"need {what}: {advice}.")
 
 
-def prepare(ct: sitk.Image, mask: sitk.Image, *, spacing: float | None = None,
-            margin: float = 5.0, max_memory_gb: float = 4.0) -> Prepared:
-    """Validate, crop to the segment + margin and resample onto an isotropic working grid.
-
-    Parameters
-    ----------
-    ct : SimpleITK.Image
-        Scalar 3-D CT in HU, any orthonormal direction matrix. Not modified.
-    mask : SimpleITK.Image
-        Rough segment of the bone (non-zero inside), any geometry. Not modified.
-    spacing : float or None
-        Isotropic resample spacing d in mm; None: :func:`auto_spacing`.
-    margin : float
-        Margin in mm around the segment's bounding box.
-    max_memory_gb : float
-        Refuse (MemoryLimitError, with a spacing that fits) when the estimate is larger.
-
-    Returns
-    -------
-    Prepared
-        ``ct`` (z, y, x) float32 HU and ``segment`` (z, y, x) bool on the working grid, whose
-        ``grid`` maps grid millimetres (x, y, z) to physical LPS.
-    """
-    validate_ct(ct)
-    ct_arr_view = sitk.GetArrayViewFromImage(ct)
-    if _looks_like_labelmap(ct_arr_view):
-        raise VolumeTypeError(
-            "The selected volume looks like a label map (few non-negative integer values), not a CT "
-            "in Hounsfield units: select the CT volume as input.")
-    seg = segment_on_ct_grid(ct, mask)
-    seg_arr = sitk.GetArrayViewFromImage(seg)
-    nz = np.nonzero(seg_arr)
-    lo = np.array([nz[2].min(), nz[1].min(), nz[0].min()])
-    hi = np.array([nz[2].max(), nz[1].max(), nz[0].max()])
-    size = np.array(ct.GetSize())
-    touching = [ax for ax in range(3) if lo[ax] == 0 or hi[ax] == size[ax] - 1]
-    if touching:
-        names = ", ".join("ijk"[a] for a in touching)
-        raise BorderError(
-            f"The segment touches the border of the CT volume (axis {names}): the bone is cut by the "
-            "scan, so a closed surface would invent the missing part. Use a CT that contains the whole "
-            "bone, or crop the segment away from the volume border.")
-    spacing_ct = np.array(ct.GetSpacing())
-    margin_vox = np.ceil(margin / spacing_ct).astype(int) + 1
-    lo_c = np.maximum(lo - margin_vox, 0)
-    hi_c = np.minimum(hi + margin_vox, size - 1)
-    crop_size = hi_c - lo_c + 1
-
-    extent_mm = (crop_size - 1) * spacing_ct
-    d = spacing if spacing else auto_spacing(extent_mm)
-    need = check_memory(extent_mm, d, max_memory_gb)
-
-    ct_crop = sitk.RegionOfInterest(ct, [int(v) for v in crop_size], [int(v) for v in lo_c])
-    seg_crop = sitk.RegionOfInterest(seg, [int(v) for v in crop_size], [int(v) for v in lo_c])
-    direction = np.array(ct.GetDirection()).reshape(3, 3)
-    origin = np.array(ct_crop.GetOrigin())
-    new_size = [int(np.floor(e / d)) + 1 for e in extent_mm]
-    ref = sitk.Image(new_size, sitk.sitkFloat32)
-    ref.SetSpacing([d, d, d])
-    ref.SetOrigin(origin.tolist())
-    ref.SetDirection(direction.ravel().tolist())
-    ct_f = sitk.Cast(ct_crop, sitk.sitkFloat32)
-    # B-spline interpolation (paper §2.1): thick slices become isotropic without stair steps.
-    ct_res = sitk.Resample(ct_f, ref, sitk.Transform(), sitk.sitkBSpline, OUTSIDE_HU, sitk.sitkFloat32)
-    seg_res = sitk.Resample(seg_crop, ref, sitk.Transform(), sitk.sitkNearestNeighbor, 0, sitk.sitkUInt8)
-    grid = Grid(origin=origin, direction=direction, spacing=float(d),
-                shape_zyx=tuple(int(v) for v in reversed(new_size)))
-    info = {
-        "ct_size": [int(v) for v in size],
-        "ct_spacing_mm": [float(v) for v in spacing_ct],
-        "crop_index": [int(v) for v in lo_c],
-        "crop_size": [int(v) for v in crop_size],
-        "resample_spacing_mm": float(d),
-        "grid_size": [int(v) for v in new_size],
-        "estimated_memory_gb": need / 1024 ** 3,
-        "segment_voxels_on_ct": int(len(nz[0])),
-    }
-    return Prepared(grid=grid, ct=sitk.GetArrayFromImage(ct_res), segment=sitk.GetArrayFromImage(seg_res) > 0,
-                    ct_spacing=tuple(float(v) for v in spacing_ct), info=info)
-
-
 # ---------------------------------------------------------------------------------------------
-# several segments at once (the joint-aware pipeline)
+# the working grid of a run (one bone or several)
 
 # Where a target touches the image border, the working grid continues past it by this much
 # (mm, and at least CUT_EXTENSION_VOXELS CT voxels), with CT and labels replicated.
@@ -328,14 +239,7 @@ def labels_on_ct_grid(ct: sitk.Image, labels: sitk.Image) -> np.ndarray:
                 "background). Renumber the labels.")
     # Unsigned labels keep their pixel type: a uint32 copy of a whole-body CT's grid is GBs.
     unsigned = labels.GetPixelID() in (sitk.sitkUInt8, sitk.sitkUInt16, sitk.sitkUInt32)
-    img = labels if unsigned else sitk.Cast(labels, sitk.sitkUInt32)
-    same = (labels.GetSize() == ct.GetSize()
-            and np.allclose(labels.GetOrigin(), ct.GetOrigin(), atol=1e-4)
-            and np.allclose(labels.GetSpacing(), ct.GetSpacing(), atol=1e-6)
-            and np.allclose(labels.GetDirection(), ct.GetDirection(), atol=1e-6))
-    if not same:
-        img = sitk.Resample(img, ct, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
-                            img.GetPixelID())
+    img = on_grid_of(labels if unsigned else sitk.Cast(labels, sitk.sitkUInt32), ct)
     # the caller's own image is only read: a read-only view of it, not a copy
     return sitk.GetArrayViewFromImage(img) if img is labels else sitk.GetArrayFromImage(img)
 
@@ -425,9 +329,9 @@ def prepare_labels(ct: sitk.Image, labels: sitk.Image, targets, *, spacing: floa
                     f"Segment {t} touches the border of the CT volume ({names}): the bone is cut "
                     "by the scan. With at_border = cap (the default) it is closed by a flat cap at "
                     "the image boundary; or use a CT that contains the whole bone.")
-    nz = np.nonzero(tmask)
-    lo = np.array([nz[2].min(), nz[1].min(), nz[0].min()])
-    hi = np.array([nz[2].max(), nz[1].max(), nz[0].max()])
+    box = bbox_slices(tmask, 0)[::-1]  # x, y, z
+    lo = np.array([b.start for b in box])
+    hi = np.array([b.stop - 1 for b in box])
     spacing_ct = np.array(ct.GetSpacing(), dtype=np.float64)
     margin_vox = np.ceil((margin + band_mm) / spacing_ct).astype(int) + 1
     lo_c = np.maximum(lo - margin_vox, 0)

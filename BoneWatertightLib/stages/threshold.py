@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 from ..mesh.distance import distance_inside, distance_outside
+from .prepare import bbox_slices
 
 SIX = ndimage.generate_binary_structure(3, 1)
 
@@ -201,13 +202,6 @@ def coarse_distance(mask: np.ndarray, spacing: float, step_mm: float = 1.0) -> t
     f = max(1, int(round(step_mm / spacing)))
     coarse = _block_any(mask, f)
     return distance_outside(coarse) * (f * spacing), f
-
-
-def bbox_slices(mask: np.ndarray, pad: int) -> tuple:
-    """Slices of ``mask``'s bounding box grown by ``pad`` voxels (clipped to the array)."""
-    idx = [np.nonzero(mask.any(axis=tuple(a for a in range(3) if a != ax)))[0] for ax in range(3)]
-    return tuple(slice(max(0, int(i.min()) - pad), min(n, int(i.max()) + pad + 1))
-                 for i, n in zip(idx, mask.shape))
 
 
 def _open_close(mask: np.ndarray, opening: int, closing: int, fallbacks=None,

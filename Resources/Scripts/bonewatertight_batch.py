@@ -3,7 +3,7 @@
 Usage (the same flags, parameter options and exit codes as the ``bonewatertight`` command):
   Slicer --no-splash --no-main-window --python-script bonewatertight_batch.py -- \
       --ct CT.nrrd --seg Seg.seg.nrrd --label NAME_OR_ID --out bone.stl \
-      [--preset femur|hip|vertebra] [--h0 300 --spacing 0.5 ...] [--report report.json] [--ras]
+      [--h0 300 --spacing 0.5 ...] [--report report.json] [--ras]
   Slicer --no-main-window --python-script bonewatertight_batch.py -- \
       --ct CT.nrrd --seg Seg.seg.nrrd --label femur_left --label hip_left --out '{label}.stl' \
       [--all-labels] [--neighbours auto|none|LABEL,...]
@@ -59,7 +59,7 @@ def build_parser():
 
     parser = options.Parser(prog="bonewatertight_batch.py", description=__doc__.split("\n")[0])
     options.add_io_options(parser)
-    options.add_preset_option(parser)
+    options.add_removed_options(parser)
     parser.add_argument("-q", "--quiet", action="store_true", help="Print nothing but errors.")
     parser.add_argument("--self-test", action="store_true",
                         help="Run on a built-in phantom made of MRML nodes (no files needed).")
@@ -208,8 +208,7 @@ def _runFiles(args, params, progress, transaction):
                 picture = os.path.splitext(picture)[0] + f"_{run.safe_name(labelNames[v])}.png"
             pictures[v] = picture
     inputs = {"ct": os.path.abspath(args.ct), "seg": os.path.abspath(args.seg),
-              "ct_size": list(ct.GetSize()), "ct_spacing": list(ct.GetSpacing()),
-              "preset": args.preset}
+              "ct_size": list(ct.GetSize()), "ct_spacing": list(ct.GetSpacing())}
     return run.run_joint(ct, labels, targets, dict(names), outputs, params,
                          coordinate_system="RAS" if args.ras else "LPS", pictures=pictures,
                          intermediates_dir=args.save_intermediates, neighbours=neighbours,
@@ -231,7 +230,7 @@ def main(argv):
             overrides = {"spacing": 0.6, "h0": 500.0, "ht": 300.0, **overrides}
         if args.save_intermediates:
             overrides["keep_intermediates"] = True
-        params = options.make_parameters(args.preset, overrides)
+        params = options.make_parameters(overrides)
 
         def progress(fraction, message):
             if not args.quiet:

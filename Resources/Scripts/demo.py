@@ -1,6 +1,6 @@
 """Reconstruct the bundled sample bone and write surface, report and picture.
 
-Usage: python Resources/Scripts/demo.py [OUTDIR] [--label NAME] [--preset NAME]
+Usage: python Resources/Scripts/demo.py [OUTDIR] [--label NAME]
 
 Input: Resources/SampleData/lumbar_spine_3mm (a 3 mm CT crop with TotalSegmentator labels).
 Output in OUTDIR (default ``out``): surface.stl, surface.vtp (with the per-vertex
@@ -25,16 +25,14 @@ from BoneWatertightLib import errors  # noqa: E402
 from BoneWatertightLib.app import run as runner  # noqa: E402
 from BoneWatertightLib.app.cli import ProgressBar  # noqa: E402
 from BoneWatertightLib.io import images, segmentations  # noqa: E402
-from BoneWatertightLib.params import preset  # noqa: E402
+from BoneWatertightLib.params import Parameters  # noqa: E402
 from BoneWatertightLib.report import CaseReport  # noqa: E402
 
 SAMPLE = os.path.join(ROOT, "Resources", "SampleData", "lumbar_spine_3mm")
 DEFAULT_LABEL = "vertebrae_L3"
-DEFAULT_PRESET = "vertebra"
 
 
-def run(out_dir: str, label: str = DEFAULT_LABEL, preset_name: str = DEFAULT_PRESET,
-        quiet: bool = False) -> CaseReport:
+def run(out_dir: str, label: str = DEFAULT_LABEL, quiet: bool = False) -> CaseReport:
     """Run the pipeline on the sample through the run service; returns the case report (also
     written to report.json)."""
     os.makedirs(out_dir, exist_ok=True)
@@ -56,14 +54,14 @@ def run(out_dir: str, label: str = DEFAULT_LABEL, preset_name: str = DEFAULT_PRE
     from BoneWatertightLib.stages.autothreshold import propose_thresholds
 
     auto = propose_thresholds(ct, mask)
-    params = preset(preset_name, h0=float(auto["h0"]), ht=float(auto["ht"]), closing=3).validate()
+    params = Parameters(h0=float(auto["h0"]), ht=float(auto["ht"]), closing=3).validate()
     bar = ProgressBar(enabled=False if quiet else None)
     import numpy as np
     import SimpleITK as sitk
 
     segment_ml = (float(np.count_nonzero(sitk.GetArrayViewFromImage(mask)))
                   * float(np.prod(mask.GetSpacing())) / 1000.0)
-    inputs = {"ct": ct_path, "seg": seg_path, "label": label, "preset": preset_name,
+    inputs = {"ct": ct_path, "seg": seg_path, "label": label,
               "ct_size": list(ct.GetSize()), "ct_spacing": list(ct.GetSpacing()),
               "segment_volume_ml": segment_ml, "auto_thresholds": auto}
     try:
@@ -86,7 +84,7 @@ def summary(report: CaseReport) -> str:
                        "n_self_intersections", "n_degenerate"))
     lines = [
         f"bone:            {report.segment_name} "
-        f"(sample {os.path.relpath(SAMPLE, ROOT)}, preset {report.inputs.get('preset')})",
+        f"(sample {os.path.relpath(SAMPLE, ROOT)})",
         f"surface:         {out.n_vertices} vertices, {out.n_faces} triangles",
         f"checks:          {'ok' if checks.ok else 'FAILED'} ({flags})"
         + ("" if checks.ok else "; problems: " + "; ".join(map(str, checks.problems))),
@@ -124,11 +122,10 @@ def main(argv=None) -> int:
     parser.add_argument("--label", default=DEFAULT_LABEL,
                         help=f"segment of the sample (default {DEFAULT_LABEL}; also "
                              "vertebrae_L4)")
-    parser.add_argument("--preset", default=DEFAULT_PRESET, help="parameter preset")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     try:
-        report = run(args.out_dir, args.label, args.preset, args.quiet)
+        report = run(args.out_dir, args.label, args.quiet)
     except KeyboardInterrupt:
         sys.stderr.write("error: cancelled\n")
         return errors.EXIT_CANCELLED
