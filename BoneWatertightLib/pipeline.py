@@ -792,8 +792,12 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
 
 
 def evidence_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, flags) -> tuple:
-    """Per-vertex evidence class and confidence of the finished surface (stages.evidence)."""
+    """Per-vertex evidence class and confidence of the finished surface (stages.evidence).
+    ``verts`` are grid mm; ``faces`` are oriented outward in physical space, which a reflecting
+    direction matrix turns inward on the grid."""
     origin = bone.masks.origin
+    if enclosed_volume(verts, faces) < 0:
+        faces = faces[:, ::-1]
     fill = None
     if bone.fusion is not None and bone.fusion.fill_mask is not None:
         mask, lo, h = bone.fusion.fill_mask
