@@ -111,6 +111,7 @@ EXIT_INPUT = 2         # bad input or usage; the message says what to change
 EXIT_FAILED = 3        # the reconstruction failed (batch: at least one case failed)
 EXIT_DEPENDENCY = 4    # a dependency or optional feature is missing
 EXIT_OUTPUT = 5        # an output could not be written, or another operating-system error
+EXIT_PARTIAL = 6       # partly done: of several bones, those that passed are written, others failed
 EXIT_CANCELLED = 130   # cancelled (Ctrl-C or the progress callback)
 
 EXIT_CODES = {
@@ -120,6 +121,7 @@ EXIT_CODES = {
     EXIT_FAILED: "reconstruction failed",
     EXIT_DEPENDENCY: "missing dependency",
     EXIT_OUTPUT: "output or OS error",
+    EXIT_PARTIAL: "partly done",
     EXIT_CANCELLED: "cancelled",
 }
 """Exit code -> short status (the batch summary's status column)."""
@@ -138,6 +140,22 @@ def exit_code_for(exc: BaseException) -> int:
     if isinstance(exc, OSError):
         return EXIT_OUTPUT
     return EXIT_INTERNAL
+
+
+def joint_exit_code(codes: list, n_written: int) -> int:
+    """The exit code of a run of several bones: ``codes`` those of the bones that failed,
+    ``n_written`` how many were written. EXIT_PARTIAL when some were written and some failed
+    (an internal error or a cancel stays what it is); else as for one bone, an input error
+    outranking a failed reconstruction."""
+    codes = [c for c in codes if c != EXIT_OK]
+    if not codes:
+        return EXIT_OK
+    for code in (EXIT_INTERNAL, EXIT_CANCELLED, EXIT_DEPENDENCY, EXIT_OUTPUT):
+        if code in codes:
+            return code
+    if n_written:
+        return EXIT_PARTIAL
+    return EXIT_INPUT if EXIT_INPUT in codes else EXIT_FAILED
 
 
 def one_line(exc: BaseException) -> str:

@@ -218,8 +218,8 @@ class Parameters:
     max_memory_gb: float = param(
         4.0, "prepare", "Resampling", label="Memory limit", unit="GB", minimum=0.25,
         maximum=256.0, step=0.5, decimals=2,
-        help="Refuse a resample whose estimated memory exceeds this (the message says which "
-             "spacing fits)")
+        help="The automatic spacing is coarsened to fit this; an explicit spacing whose "
+             "estimated memory exceeds it is refused (the message says which spacing fits)")
 
     # --- hybrid filter (paper §2.1)
     sigma: Optional[float] = param(

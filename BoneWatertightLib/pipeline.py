@@ -354,7 +354,7 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
                     slots=len(ws.targets) + 1)
     results = [done[k] if k in done else _failed_result(ws, k, run.failed[k])
                for k in ws.targets]
-    pairs = pair_stage(ws, results)
+    pairs = pair_stage(ws, results, keep_going=run.keep_going)
     run.times.total = time.perf_counter() - t_all
     for r in results:
         if r.ok:
@@ -386,6 +386,11 @@ def prepare_stage(run: _Run, ct, labels, targets, neighbours, names: dict) -> Wo
         lab, neighbour_values = _select_neighbours(prep.labels, prep.values, prep.targets,
                                                    neighbours)
         band = max(params.segment_dilation, BAND_COARSENESS * prep.coarseness)
+    coarsened = prep.info.get("spacing_coarsened_for_memory_from_mm")
+    if coarsened is not None:
+        run.fallbacks.add("prepare", f"automatic spacing {prep.grid.spacing:g} mm instead of the "
+                          f"measured rule's {coarsened:g} mm, to fit max_memory_gb = "
+                          f"{params.max_memory_gb:g}", 1, "grid")
     run.failed.update(size_errors)
     return Workspace(prep=prep, labels=lab, neighbour_values=neighbour_values, names=names,
                      band=band)
@@ -571,8 +576,11 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
                                              | (own.owner[masks.box] == k))
     if own.unsupported is not None:
         trusted &= ~own.unsupported[masks.box]
-    fusion = _poisson.Fusion(label=trusted, label_origin=np.zeros(3), label_spacing=d,
-                             genus=_plaus.segment_genus(trusted, d),
+    # The segment at its own resolution: its stair steps and holes smaller than that are no
+    # tunnels of the bone (plausibility.smoothed_segment).
+    fusion = _poisson.Fusion(label=_plaus.smoothed_segment(trusted, d, ws.prep.coarseness),
+                             label_origin=np.zeros(3), label_spacing=d,
+                             genus=_plaus.segment_genus(trusted, d, ws.prep.coarseness),
                              close_mm=(ws.prep.coarseness,))
     plates = bone.plates
     if plates is not None and plates.n:
@@ -769,7 +777,7 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
         plaus, box, segment = plausibility_of(run, ws, bone, verts, faces, phys, planes)
     warnings = _plausibility_warnings(run, plaus)
     plaus.segment_genus = _plaus.segment_genus(
-        segment & _plaus.image_mask(box, planes, ws.d), ws.d)
+        segment & _plaus.image_mask(box, planes, ws.d), ws.d, ws.prep.coarseness)
     warnings += _plaus.tunnel_warning(name, checks.genus, plaus.segment_genus)
     constraints = bone.constraints
     dist, _ = cKDTree(grid.grid_to_physical(constraints)).query(phys, workers=-1) \
@@ -933,9 +941,11 @@ def _failed_result(ws: Workspace, k: int, error: BaseException) -> Reconstructio
                                 label=ws.value_of(k), name=ws.name_of(k), error=error)
 
 
-def pair_stage(ws: Workspace, results: list) -> list:
+def pair_stage(ws: Workspace, results: list, keep_going: bool = False) -> list:
     """Every pair of finished bones checked exactly (PairReport), the joint warnings; an
-    interpenetrating pair fails the run (ReconstructionError)."""
+    interpenetrating pair fails the run (ReconstructionError) or, with ``keep_going``, both
+    of its bones (their entries of ``results`` are replaced by failed results naming the
+    pair; the pairs returned are those of the bones that still stand)."""
     own = ws.own
     contact_of = {(cc["a"], cc["b"]): cc for cc in own.contacts}
     by_k = dict(zip(ws.targets, results))
@@ -975,13 +985,29 @@ def pair_stage(ws: Workspace, results: list) -> list:
                     "mm^2 contact; elsewhere the boundary follows the segments' labels: check the "
                     "surface at the joint")
     bad = [p for p in pairs if not p.ok]
-    if bad:
-        text = "; ".join(f"{p.a} and {p.b}: {p.crossing_face_pairs} crossing face pairs, "
-                         f"{p.a_inside_b + p.b_inside_a} vertices inside the other" for p in bad)
-        raise ReconstructionError(
-            f"The surfaces of neighbouring bones interpenetrate ({text}). Check the labels at the "
-            "joint, or use a finer resample spacing.")
-    return pairs
+    if not bad:
+        return pairs
+    if not keep_going:
+        raise _interpenetration_error(bad)
+    # One pair that crosses does not discard the other bones: both of its bones fail.
+    failed = {}
+    for p in bad:
+        for name in (p.a, p.b):
+            failed.setdefault(name, []).append(p)
+    for i, r in enumerate(results):
+        if r.ok and r.name in failed:
+            results[i] = ReconstructionResult(surface=None, distance_to_constraints=None,
+                                              report=None, label=r.label, name=r.name,
+                                              error=_interpenetration_error(failed[r.name]))
+    return [p for p in pairs if p.a not in failed and p.b not in failed]
+
+
+def _interpenetration_error(bad: list) -> ReconstructionError:
+    text = "; ".join(f"{p.a} and {p.b}: {p.crossing_face_pairs} crossing face pairs, "
+                     f"{p.a_inside_b + p.b_inside_a} vertices inside the other" for p in bad)
+    return ReconstructionError(
+        f"The surfaces of neighbouring bones interpenetrate ({text}). Check the labels at the "
+        "joint, or use a finer resample spacing.")
 
 
 def _shared_times(times: StageTimes, shared: StageTimes) -> None:

@@ -320,3 +320,56 @@ def test_segment_genus_and_the_tunnel_warning():
     assert plausibility.tunnel_warning("hip", 1, 1) == []
     (text,) = plausibility.tunnel_warning("hip", 2, 1)
     assert "1 tunnel more than its segment (genus 2 against 1)" in text
+
+
+# ---------------------------------------------------------------------------- pairs that cross
+
+def _pair_scene(centres):
+    """Finished bones 1..n as spheres of radius 10 mm at ``centres`` (a fake workspace with
+    no contact at all: only the exact pair checks of pair_stage run)."""
+    from types import SimpleNamespace
+
+    from BoneWatertightLib.mesh.surface import Surface
+    from BoneWatertightLib.pipeline import ReconstructionResult
+
+    names = {k: f"bone{k}" for k in range(1, len(centres) + 1)}
+    ws = SimpleNamespace(own=SimpleNamespace(contacts=[], other=len(centres) + 1),
+                         targets=list(names), name_of=names.get)
+    results = []
+    for k, c in zip(names, centres):
+        v, f = icosphere(level=3, radius=10.0)
+        results.append(ReconstructionResult(surface=Surface(v + np.asarray(c, float), f),
+                                            distance_to_constraints=np.zeros(len(v)),
+                                            report=SimpleNamespace(warnings=[]), label=k,
+                                            name=names[k]))
+    return ws, results
+
+
+def test_an_interpenetrating_pair_fails_the_run_or_only_its_two_bones():
+    """Issue 21: one pair that crosses does not discard the other bones of the run."""
+    from BoneWatertightLib.errors import ReconstructionError
+    from BoneWatertightLib.pipeline import pair_stage
+
+    centres = [(0, 0, 0), (15, 0, 0), (60, 0, 0), (81, 0, 0)]  # 1, 2 overlap; 3, 4 1 mm apart
+    ws, results = _pair_scene(centres)
+    with pytest.raises(ReconstructionError, match="bone1 and bone2: .* crossing face pairs"):
+        pair_stage(ws, list(results))
+    pairs = pair_stage(ws, results, keep_going=True)
+    assert [r.ok for r in results] == [False, False, True, True]
+    for r in results[:2]:
+        assert "interpenetrate (bone1 and bone2" in str(r.error) and r.surface is None
+    assert [(p.a, p.b) for p in pairs] == [("bone3", "bone4")] and pairs[0].ok
+    assert pairs[0].min_gap_mm == pytest.approx(1.0, abs=0.3)
+
+
+def test_exit_code_of_a_run_of_several_bones():
+    from BoneWatertightLib.errors import (EXIT_CANCELLED, EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL,
+                                          EXIT_OK, EXIT_PARTIAL, joint_exit_code)
+
+    assert joint_exit_code([], 3) == EXIT_OK
+    assert joint_exit_code([EXIT_FAILED], 2) == EXIT_PARTIAL
+    assert joint_exit_code([EXIT_INPUT, EXIT_FAILED], 1) == EXIT_PARTIAL
+    assert joint_exit_code([EXIT_FAILED], 0) == EXIT_FAILED
+    assert joint_exit_code([EXIT_FAILED, EXIT_INPUT], 0) == EXIT_INPUT
+    assert joint_exit_code([EXIT_INTERNAL, EXIT_FAILED], 2) == EXIT_INTERNAL
+    assert joint_exit_code([EXIT_CANCELLED], 2) == EXIT_CANCELLED

@@ -189,6 +189,42 @@ def test_auto_spacing_is_the_finest_measured_step_that_keeps_the_grid_small():
     assert prepare.estimate_memory_bytes(femur, d) <= 2 * 1024 ** 3
 
 
+def test_auto_spacing_always_fits_the_memory_limit_it_checks():
+    """Issue 21: every bone of the 3 mm pelvis CT spans 330 x 219 x 345 mm; the rule's 1 mm
+    would need 4.7 GB, which check_memory refuses at the default 4 GB. The automatic spacing
+    is then the finest 0.01 mm step that fits, for any limit."""
+    pelvis = np.array([330.0, 219.0, 345.0])
+    assert prepare.auto_spacing(pelvis) == 1.0
+    with pytest.raises(MemoryLimitError, match="at least 1.06 mm"):
+        prepare.check_memory(pelvis, 1.0, 4.0)
+    assert prepare.auto_spacing(pelvis, 4.0) == pytest.approx(1.06)
+    for extent in (pelvis, np.array([60.0, 55.0, 45.0]), np.array([500.0, 400.0, 1200.0])):
+        rule = prepare.auto_spacing(extent)
+        for gb in (0.25, 1.0, 4.0, 16.0):
+            d = prepare.auto_spacing(extent, gb)
+            prepare.check_memory(extent, d, gb)  # never refused
+            assert d >= rule
+            if d > rule:  # and no finer step would have fitted
+                with pytest.raises(MemoryLimitError):
+                    prepare.check_memory(extent, round(d - 0.01, 2), gb)
+
+
+def test_a_run_coarsens_the_automatic_spacing_to_its_memory_limit_and_says_so():
+    # a bone of 60 x 56 x 64 mm: 0.5 mm would need about 0.7 GB
+    scene = _phantomish_scene(size=(84, 80, 72), spacing=(1.0, 1.0, 1.0),
+                              objects=[Obj("ellipsoid", np.array([42.0, 40.0, 36.0]),
+                                           np.array([30.0, 28.0, 32.0]), 1200.0, 2.0,
+                                           np.array([1.0, 0, 0]))])
+    res = reconstruct(scene.ct(), scene.label_map(), Parameters(max_memory_gb=0.25, **FAST))
+    d = res.report.input["resample_spacing_mm"]
+    assert d > prepare.AUTO_SPACING_RANGE_MM[0]
+    assert res.report.input["spacing_coarsened_for_memory_from_mm"] == \
+        pytest.approx(prepare.AUTO_SPACING_RANGE_MM[0])
+    said = [f for f in res.report.fallbacks if f.stage == "prepare"]
+    assert len(said) == 1 and "max_memory_gb = 0.25" in said[0].what
+    assert res.report.input["estimated_memory_gb"] <= 0.25
+
+
 def test_auto_spacing_is_what_a_run_uses():
     scene = _phantomish_scene()
     res = reconstruct(scene.ct(), scene.label_map(), Parameters(**FAST))

@@ -52,8 +52,8 @@ from typing import NamedTuple, Optional, Sequence
 
 from .. import errors as _errors
 from ..errors import (EXIT_CANCELLED, EXIT_DEPENDENCY, EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL,
-                      EXIT_OUTPUT, BoneWatertightError, CancelledError, DependencyError,
-                      EmptySegmentError, InputError, OutputError, ReconstructionError)
+                      EXIT_OUTPUT, EXIT_PARTIAL, BoneWatertightError, CancelledError,
+                      DependencyError, EmptySegmentError, InputError, OutputError, ReconstructionError)
 from ..io import files as bwfiles
 from ..params import SCHEMA, Parameters
 # One bone of a child run is the pipeline's own result type.
@@ -78,6 +78,7 @@ STALE_FOLDER_S = 60.0
 CANCELLED_MESSAGE = "Cancelled by the user; nothing was changed."
 
 _EXIT_ERRORS = {EXIT_INPUT: InputError, EXIT_FAILED: ReconstructionError,
+                EXIT_PARTIAL: ReconstructionError,
                 EXIT_DEPENDENCY: DependencyError, EXIT_OUTPUT: OutputError,
                 EXIT_CANCELLED: CancelledError}
 

@@ -5,7 +5,8 @@ This module only parses the arguments and shows progress; the work is done by th
 (:mod:`.run`) and, for ``--cases``, the batch runner (:mod:`.batch`). Exit codes are those of
 :mod:`BoneWatertightLib.errors`: 0 success, 2 bad input or usage (the message says what to
 change), 3 reconstruction failed (batch: some case failed), 4 missing dependency, 5 an output
-could not be written (or another OS error), 130 cancelled (Ctrl-C, SIGTERM or SIGHUP), 1
+could not be written (or another OS error), 6 partly done (of several bones, those that passed
+are written, the others failed), 130 cancelled (Ctrl-C, SIGTERM or SIGHUP), 1
 internal error. Errors are one line ``error: <message>`` on stderr. The files of a run (surfaces,
 report, picture, intermediates) appear together, complete, or not at all.
 
@@ -27,8 +28,8 @@ import sys
 import time
 from typing import Optional
 
-from ..errors import (EXIT_CANCELLED, EXIT_INPUT, EXIT_INTERNAL, EXIT_OK, CancelledBySignal,
-                      CancelledError, InputError, exit_code_for, one_line)
+from ..errors import (EXIT_CANCELLED, EXIT_INTERNAL, EXIT_OK, CancelledBySignal, CancelledError,
+                      InputError, exit_code_for, joint_exit_code, one_line)
 from ..io import files as bwfiles
 from ..io import images, segmentations
 from ..report import case_summary_line, pair_summary_line
@@ -96,6 +97,7 @@ batch folder layout (--cases DIR):
 exit codes:
   0 success, 2 bad input, 3 reconstruction failed (batch: some case failed),
   4 missing dependency, 5 an output could not be written (or another OS error),
+  6 partly done (several bones: those that passed are written, the others failed),
   130 cancelled (Ctrl-C, SIGTERM, SIGHUP), 1 internal error.
 
 outputs:
@@ -368,4 +370,4 @@ def _run_single(args, parser) -> int:
             print(case_summary_line(report), flush=True)
         for pair in joint.pairs:
             print(pair_summary_line(pair), flush=True)
-    return max(codes, key=lambda c: (c != 0, c == EXIT_INPUT, c)) if codes else EXIT_OK
+    return joint_exit_code(codes, len(joint.reports))

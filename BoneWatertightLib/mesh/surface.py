@@ -8,7 +8,6 @@ vertex indices, counter-clockwise seen from outside.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Optional
 
 import numpy as np
 
@@ -117,6 +116,48 @@ def to_polydata(surface: Surface, normals: bool = True):
         arr.SetName(name)
         poly.GetCellData().AddArray(arr)
     return poly
+
+
+def inside_mask(surface: Surface, shape: tuple, spacing: float, origin=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """The voxel centres inside a closed surface.
+
+    Parameters
+    ----------
+    surface : Surface
+        Closed; its vertices in the grid's frame (x-y-z mm).
+    shape : tuple of 3 int
+        (z, y, x) size of the grid.
+    spacing : float
+        Isotropic step of the grid (mm).
+    origin : sequence of 3 float
+        x-y-z position of voxel (0, 0, 0).
+
+    Returns
+    -------
+    (z, y, x) bool array of ``shape``
+    """
+    import vtk
+    from vtk.util import numpy_support as ns
+
+    image = vtk.vtkImageData()
+    image.SetDimensions(int(shape[2]), int(shape[1]), int(shape[0]))
+    image.SetOrigin(*[float(v) for v in origin])
+    image.SetSpacing(spacing, spacing, spacing)
+    image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
+    image.GetPointData().GetScalars().Fill(1)
+    stencil = vtk.vtkPolyDataToImageStencil()
+    stencil.SetInputData(to_polydata(surface, normals=False))
+    stencil.SetOutputOrigin(*[float(v) for v in origin])
+    stencil.SetOutputSpacing(spacing, spacing, spacing)
+    stencil.SetOutputWholeExtent(image.GetExtent())
+    stencil.Update()
+    cut = vtk.vtkImageStencil()
+    cut.SetInputData(image)
+    cut.SetStencilConnection(stencil.GetOutputPort())
+    cut.ReverseStencilOff()
+    cut.SetBackgroundValue(0)
+    cut.Update()
+    return ns.vtk_to_numpy(cut.GetOutput().GetPointData().GetScalars()).reshape(tuple(shape)) > 0
 
 
 def from_polydata(poly, coordinate_system: str = "LPS") -> Surface:

@@ -27,8 +27,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ..mesh.checks import find_self_intersections
-from ..mesh.operators import laplacian, safe_update, sample_field, solve_spd, vertex_normals
-from ..mesh.surface import Surface, to_polydata
+from ..mesh.operators import laplacian, safe_update, sample_field, vertex_normals
+from ..mesh.surface import Surface, inside_mask, to_polydata
 from .threshold import bbox_slices, near
 from ..mesh.distance import signed_distance as signed_distance_map
 
@@ -50,27 +50,7 @@ FAR = 1e3
 
 def voxelize(vertices: np.ndarray, faces: np.ndarray, shape: tuple, spacing: float) -> np.ndarray:
     """Voxel centres of a (z, y, x) grid of ``spacing`` inside a closed surface (grid mm)."""
-    import vtk
-    from vtk.util import numpy_support as ns
-
-    image = vtk.vtkImageData()
-    image.SetDimensions(shape[2], shape[1], shape[0])
-    image.SetSpacing(spacing, spacing, spacing)
-    image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
-    image.GetPointData().GetScalars().Fill(1)
-    stencil = vtk.vtkPolyDataToImageStencil()
-    stencil.SetInputData(to_polydata(Surface(vertices, faces), normals=False))
-    stencil.SetOutputOrigin(0, 0, 0)
-    stencil.SetOutputSpacing(spacing, spacing, spacing)
-    stencil.SetOutputWholeExtent(image.GetExtent())
-    stencil.Update()
-    cut = vtk.vtkImageStencil()
-    cut.SetInputData(image)
-    cut.SetStencilConnection(stencil.GetOutputPort())
-    cut.ReverseStencilOff()
-    cut.SetBackgroundValue(0)
-    cut.Update()
-    return ns.vtk_to_numpy(cut.GetOutput().GetPointData().GetScalars()).reshape(shape) > 0
+    return inside_mask(Surface(vertices, faces), shape, spacing)
 
 
 def signed_distance(mask: np.ndarray, box: tuple, spacing: float) -> np.ndarray:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh.operators import sample_field
-from ..mesh.surface import surface_area
 from .refine import contrast_reference, edge_crossings
 
 EDGE, PLATE, JOINT, LABEL_ONLY, CAP = 0, 1, 2, 3, 4

@@ -64,6 +64,8 @@ COARSE_MM = 1.0
 # on the 2.5 mm-slice joint phantom).
 EXCURSION_WARN_COARSENESS = 1.3
 EXCURSION_WARN_MM = 0.5
+# The segment's genus is measured after smoothing by this many times its coarseness (sigma).
+SEGMENT_GENUS_SIGMA = 0.5
 # Excursion allowed beyond the band, in units of the coarseness, plus a constant.
 EXCURSION_COARSENESS = 2.0
 EXCURSION_MM = 2.0
@@ -292,14 +294,30 @@ def box_of(mask: np.ndarray, pad: int) -> tuple:
     return bbox_slices(mask, pad)
 
 
-def segment_genus(label: np.ndarray, spacing: float) -> int:
-    """Genus of the largest closed surface of a binary segment (z, y, x) at the 0.5 level
-    (flying edges): its tunnels, e.g. 1 for a vertebra's canal or a hip bone's obturator
-    foramen."""
+def segment_genus(label: np.ndarray, spacing: float, coarseness: float = 0.0) -> int:
+    """Genus of the largest closed surface of a binary segment (z, y, x): its tunnels, e.g. 1
+    for a vertebra's canal or a hip bone's obturator foramen.
+
+    The segment is contoured at 0.5 after smoothing by a Gaussian of SEGMENT_GENUS_SIGMA x
+    ``coarseness`` (mm): a segment stair-stepped on its own coarse grid (an AI label resampled
+    onto the CT) has tunnels of a voxel where its voxels touch at an edge, and holes smaller
+    than its own resolution, which say nothing of the bone's tunnels."""
     from .poisson import contour, surface_genus
 
-    return surface_genus(contour(np.pad(label, 1).astype(np.float32), (0.0, 0.0, 0.0), spacing,
-                                 0.5, smooth_iterations=0, relax=False))
+    field = np.pad(smoothed_segment(label, spacing, coarseness), 1).astype(np.float32)
+    return surface_genus(contour(field, (0.0, 0.0, 0.0), spacing, 0.5, smooth_iterations=0,
+                                 relax=False))
+
+
+def smoothed_segment(label: np.ndarray, spacing: float, coarseness: float) -> np.ndarray:
+    """The segment (z, y, x bool) at its own resolution: its indicator smoothed by a Gaussian
+    of SEGMENT_GENUS_SIGMA x ``coarseness`` (mm), at the 0.5 level (bool, same shape)."""
+    sigma = SEGMENT_GENUS_SIGMA * coarseness / spacing
+    if sigma <= 0.3:
+        return np.asarray(label, bool)
+    pad = int(np.ceil(3 * sigma))
+    field = ndimage.gaussian_filter(np.pad(label, pad).astype(np.float32), sigma)
+    return field[pad:-pad, pad:-pad, pad:-pad] >= 0.5
 
 
 def tunnel_warning(name: str, surface_genus: int, segment_genus: int) -> list:

@@ -21,7 +21,7 @@ from scipy import ndimage
 
 from ..errors import DependencyError, ReconstructionError
 from ..mesh.operators import tangential_relax
-from ..mesh.surface import Surface, enclosed_volume, from_polydata, to_polydata
+from ..mesh.surface import Surface, enclosed_volume, from_polydata, inside_mask
 
 # Sigma (voxels) of the smoothed mask whose gradient gives the oriented normals.
 NORMAL_MASK_SIGMA_VOXELS = 1.5
@@ -213,9 +213,6 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
 
     ``fusion``: evidence joined to the surface's (smoothed) occupancy by the maximum before
     contouring (thin plates; the segment where the surface has tunnels it does not have)."""
-    import vtk
-    from vtk.util import numpy_support as ns
-
     h = edge_length / REMESH_EDGE_RATIO
     lo = surface.vertices.min(axis=0)
     hi = surface.vertices.max(axis=0)
@@ -225,26 +222,7 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
     lo = lo - REMESH_PAD_STEPS * h
     hi = hi + REMESH_PAD_STEPS * h
     dims = np.ceil((hi - lo) / h).astype(int) + 1
-    image = vtk.vtkImageData()
-    image.SetOrigin(*lo)
-    image.SetSpacing(h, h, h)
-    image.SetDimensions(*[int(v) for v in dims])
-    image.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
-    image.GetPointData().GetScalars().Fill(1)
-    stencil = vtk.vtkPolyDataToImageStencil()
-    stencil.SetInputData(to_polydata(surface, normals=False))
-    stencil.SetOutputOrigin(*lo)
-    stencil.SetOutputSpacing(h, h, h)
-    stencil.SetOutputWholeExtent(image.GetExtent())
-    stencil.Update()
-    to_image = vtk.vtkImageStencil()
-    to_image.SetInputData(image)
-    to_image.SetStencilConnection(stencil.GetOutputPort())
-    to_image.ReverseStencilOff()
-    to_image.SetBackgroundValue(0)
-    to_image.Update()
-    occ = ns.vtk_to_numpy(to_image.GetOutput().GetPointData().GetScalars()).reshape(dims[::-1])
-    occ = occ > 0
+    occ = inside_mask(surface, tuple(int(v) for v in dims[::-1]), h, lo)
     lab, n = ndimage.label(occ)
     if n == 0:
         raise ReconstructionError("Remeshing lost the surface (empty rasterisation).")
@@ -318,7 +296,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
     trials = 0
 
     def attempt(add, soft):
-        nonlocal trials, out, genus, field_zyx
+        nonlocal trials, genus, field_zyx
         trials += 1
         trial = field_zyx.copy()
         if soft:
@@ -341,6 +319,14 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
             attempt(add, soft=False)
     if genus > fusion.genus:
         pieces, size = _plugs(field_zyx, label, h, reach)
+        # All plugs at once first (one contour when they all close holes), then one by one.
+        big = np.flatnonzero(size >= FILL_MIN_VOXELS)
+        if len(big) > 1:
+            every = ndimage.binary_dilation(np.isin(pieces, big), structure=np.ones((3, 3, 3), bool),
+                                            iterations=2) & label
+            if attempt(every, soft=True):
+                fusion.info["plugs"] += int(len(big))
+                size[big] = 0
         for p in np.argsort(size)[::-1]:
             if size[p] < FILL_MIN_VOXELS or trials >= FILL_MAX_TRIALS or genus <= fusion.genus:
                 break

@@ -11,6 +11,7 @@ label). The grid helpers the stages share live here too: :func:`same_grid` / :fu
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import SimpleITK as sitk
@@ -116,9 +117,12 @@ def bbox_slices(mask: np.ndarray, pad) -> tuple:
                  for i, n, p in zip(idx, mask.shape, pads))
 
 
-def auto_spacing(extent_mm: np.ndarray) -> float:
+def auto_spacing(extent_mm: np.ndarray, max_memory_gb: Optional[float] = None) -> float:
     """The finest spacing in AUTO_SPACING_RANGE_MM (steps of 0.01 mm) whose working grid over
-    ``extent_mm`` (x, y, z extent of the cropped region, mm) has at most AUTO_GRID_VOXELS voxels.
+    ``extent_mm`` (x, y, z extent of the cropped region, mm) has at most AUTO_GRID_VOXELS voxels;
+    with ``max_memory_gb``, coarser still when that grid would not fit it (see
+    :func:`fitting_spacing`), so that the automatic spacing is never refused by
+    :func:`check_memory`.
 
     The rule is the measured one (see the constants): below 0.5 mm the surfaces do not get
     measurably closer to the truth on the phantoms or to the reference on real CT, while time
@@ -127,7 +131,38 @@ def auto_spacing(extent_mm: np.ndarray) -> float:
     d = lo
     while d < hi and grid_voxels(extent_mm, d) > AUTO_GRID_VOXELS:
         d = round(d + 0.01, 2)
-    return float(min(d, hi))
+    d = float(min(d, hi))
+    if max_memory_gb is not None:
+        fit = fitting_spacing(extent_mm, max_memory_gb)
+        if fit is not None and fit > d:
+            d = fit
+    return d
+
+
+def fitting_spacing(extent_mm: np.ndarray, max_memory_gb: float) -> Optional[float]:
+    """The finest spacing (rounded up to 0.01 mm) whose working grid over ``extent_mm`` fits
+    ``max_memory_gb`` (:func:`estimate_memory_bytes`) and MAX_GRID_VOXELS; None when the fixed
+    overhead alone exceeds the limit."""
+    allowed = min((max_memory_gb * 1024 ** 3 - MEMORY_OVERHEAD_BYTES) / BYTES_PER_VOXEL,
+                  MAX_GRID_VOXELS)
+    if allowed < 8:
+        return None
+    e = np.asarray(extent_mm, dtype=np.float64)
+    # In steps of 0.01 mm: the grid's voxel count falls as the step grows, so bisect between
+    # a step that is too fine (the count is at least prod(extent / step)) and one that fits.
+    lo = max(int(np.floor(100 * (float(np.prod(e)) / allowed) ** (1.0 / 3.0))), 1)
+    if grid_voxels(e, lo / 100) <= allowed:
+        return lo / 100
+    hi = 2 * lo
+    while grid_voxels(e, hi / 100) > allowed:
+        hi *= 2
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if grid_voxels(e, mid / 100) > allowed:
+            lo = mid
+        else:
+            hi = mid
+    return hi / 100
 
 
 def grid_voxels(extent_mm: np.ndarray, spacing: float) -> float:
@@ -149,16 +184,13 @@ def check_memory(extent_mm: np.ndarray, spacing: float, max_memory_gb: float) ->
     limit = max_memory_gb * 1024 ** 3
     if need <= limit and voxels <= MAX_GRID_VOXELS:
         return need
-    allowed = min((limit - MEMORY_OVERHEAD_BYTES) / BYTES_PER_VOXEL, MAX_GRID_VOXELS)
     e = np.asarray(extent_mm, dtype=np.float64)
     what = (f"about {need / 1024 ** 3:.1f} GB (limit {max_memory_gb:g} GB)" if need > limit else
             f"{voxels / 1e6:.0f} M voxels (at most {MAX_GRID_VOXELS / 1e6:.0f} M)")
     advice = "raise max_memory_gb"
-    if allowed >= 8:
-        fit = spacing * (voxels / allowed) ** (1.0 / 3.0)
-        while grid_voxels(e, fit) > allowed:
-            fit *= 1.01
-        advice = f"use a spacing of at least {np.ceil(fit * 100) / 100:.2f} mm, or " + advice
+    fit = fitting_spacing(e, max_memory_gb)
+    if fit is not None:
+        advice = f"use a spacing of at least {fit:.2f} mm (or leave it on auto), or " + advice
     raise MemoryLimitError(
         f"Resampling the {e[0]:.0f} x {e[1]:.0f} x {e[2]:.0f} mm region at {spacing:g} mm would "
         f"need {what}: {advice}.")
@@ -347,8 +379,10 @@ def prepare_labels(ct: sitk.Image, labels: sitk.Image, targets, *, spacing: floa
             else:
                 pad_hi[ax] = max(pad_hi[ax], n)
     extent_mm = (crop_size + pad_lo + pad_hi - 1) * spacing_ct
-    d = float(spacing) if spacing else auto_spacing(extent_mm)
+    d = float(spacing) if spacing else auto_spacing(extent_mm, max_memory_gb)
     need = check_memory(extent_mm, d, max_memory_gb)
+    # The measured rule's spacing, when the memory limit made the automatic one coarser.
+    rule = auto_spacing(extent_mm) if not spacing else None
     start = [int(v) for v in lo_c]
     extent = [int(v) for v in crop_size]
     ct_crop = sitk.RegionOfInterest(ct, extent, start)
@@ -396,6 +430,9 @@ def prepare_labels(ct: sitk.Image, labels: sitk.Image, targets, *, spacing: floa
             "crop_index": [int(v) for v in lo_c], "crop_size": [int(v) for v in crop_size],
             "cut_extension_voxels": {"low": pad_lo.tolist(), "high": pad_hi.tolist()},
             "resample_spacing_mm": d, "grid_size": new_size,
+            "spacing_auto": not spacing,
+            "spacing_coarsened_for_memory_from_mm": (rule if rule is not None and d > rule
+                                                     else None),
             "estimated_memory_gb": need / 1024 ** 3,
             "segmentation_coarseness_mm": coarse, "labels_in_crop": values,
             "segment_voxels_on_ct": {str(t): int((native_lab == t).sum()) for t in targets}}

@@ -31,6 +31,7 @@ Exit status (the table of BoneWatertightLib.errors):
   3    reconstruction failed
   4    missing dependency (--self-test: skipped, open3d unavailable)
   5    an output could not be written, or another OS error
+  6    partly done (several bones: those that passed are written, the others failed)
   130  cancelled
 """
 
@@ -274,9 +275,9 @@ def main(argv):
         for pair in pairs:
             print("PAIR " + pair_summary_line(pair), flush=True)
         if check is not None and not check():
-            codes.append(errors.EXIT_FAILED)
-        # as the command: an input error outranks a failed reconstruction
-        return max(codes, key=lambda c: (c != 0, c == errors.EXIT_INPUT, c))
+            return errors.EXIT_FAILED
+        # as the command: partly done, or an input error outranking a failed reconstruction
+        return errors.joint_exit_code(codes, len(reports))
     except SystemExit as exc:  # --help
         return exc.code if isinstance(exc.code, int) else errors.EXIT_OK
     except KeyboardInterrupt:
