@@ -70,6 +70,11 @@ REFINE_SIGMA_MM = 0.4
 REFINE_SIGMA_MIN_VOXELS = 0.5
 # A bone reaches at most max(segment_dilation, BAND_COARSENESS x coarseness) beyond its label.
 BAND_COARSENESS = 1.0
+# M0 is cut back out of what is neither bone nor segment: farther than CARVE_SEGMENT_COARSENESS
+# x coarseness + d from the (trusted) segment and farther than CARVE_BONE_MM + d from the bone
+# at HT (the segment's own uncertainty and the CT's partial-volume foot stay untouched).
+CARVE_SEGMENT_COARSENESS = 0.5
+CARVE_BONE_MM = 1.0
 # Rounds of extra contact passes (each with one voxel more margin) while a pair still crosses.
 CONTACT_RETRIES = 3
 # HT crossings within this distance (mm) of W_H0 are left out of B* (see _bone_surface).
@@ -582,6 +587,12 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
                              label_origin=np.zeros(3), label_spacing=d,
                              genus=_plaus.segment_genus(trusted, d, ws.prep.coarseness),
                              close_mm=(ws.prep.coarseness,))
+    # Where neither the CT nor the segment has bone, M0 has none either: Poisson closes over
+    # what the views do not see into (a curved canal, a deep notch).
+    bone_ct = masks.occupancy | masks.w_ht | masks.w_h0
+    fusion.carve = _poisson.carve_region(
+        trusted, bone_ct, d, segment_margin_mm=CARVE_SEGMENT_COARSENESS * ws.prep.coarseness + d,
+        bone_margin_mm=CARVE_BONE_MM + d)
     plates = bone.plates
     if plates is not None and plates.n:
         fusion.plates = lambda shape, lo, h: plates.field(shape, np.asarray(lo) + origin, h)

@@ -373,3 +373,35 @@ def test_exit_code_of_a_run_of_several_bones():
     assert joint_exit_code([EXIT_FAILED, EXIT_INPUT], 0) == EXIT_INPUT
     assert joint_exit_code([EXIT_INTERNAL, EXIT_FAILED], 2) == EXIT_INTERNAL
     assert joint_exit_code([EXIT_CANCELLED], 2) == EXIT_CANCELLED
+
+
+# ---------------------------------------------------------------------------- carving M0
+
+def test_m0_is_cut_back_out_of_what_is_neither_bone_nor_segment():
+    """Poisson closes over a tunnel it cannot see into (a curved canal); where the CT shows no
+    bone and the segment has none either, the remesh cuts the tunnel back out of M0."""
+    from BoneWatertightLib.mesh.surface import Surface
+    from BoneWatertightLib.stages.poisson import Fusion, carve_region, remesh, surface_genus
+
+    d = 0.5
+    z, y, x = np.indices((60, 60, 60)) * d        # a 30 mm cube of grid, mm
+    block = (np.abs(x - 15) < 10) & (np.abs(y - 15) < 10) & (np.abs(z - 15) < 8)
+    canal = np.hypot(x - 15, y - 15) < 4.0         # through the block along z
+    segment = block & ~canal
+    bone = segment & ~(np.hypot(x - 15, y - 15) < 5.5) | (block & (np.hypot(x - 15, y - 15) > 9))
+    carve = carve_region(segment, bone, d, segment_margin_mm=0.5 + d, bone_margin_mm=1.0 + d)
+    assert carve[30, 30, 30] and not carve[30, 30, 40] and not segment[carve].any()
+    assert not (carve & block & ~canal).any()
+    # M0 as Poisson gives it: the solid block, canal closed
+    v, f = icosphere(level=4, radius=1.0)
+    v = np.clip(v * 14.0, -10.0, 10.0) * np.array([1.0, 1.0, 0.8]) + 15.0
+    m0 = Surface(v, f)
+    plain = remesh(m0, 0.6, fusion=Fusion(label=segment, label_origin=np.zeros(3),
+                                          label_spacing=d, genus=1))
+    assert surface_genus(plain) == 0
+    fusion = Fusion(label=segment, label_origin=np.zeros(3), label_spacing=d, genus=1,
+                    carve=carve)
+    cut = remesh(m0, 0.6, fusion=fusion)
+    assert surface_genus(cut) == 1
+    assert fusion.info["carved_mm3"] > 0.5 * np.pi * 4.0 ** 2 * 16.0 * 0.5
+    assert check_surface(cut.vertices, cut.faces).ok

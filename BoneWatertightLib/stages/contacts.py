@@ -64,23 +64,30 @@ def territories(surfaces: dict, fixed: dict, shape: tuple, spacing: float) -> di
     owned voxels of the bones that are not reconstructed (``fixed``: {key: bool mask}).
 
     phi is computed only where another bone comes within SDF_PAD_MM (a box around the joint),
-    so a long bone pays for its joints, not for its length. None: no other bone is near."""
-    masks = {k: voxelize(v, f, shape, spacing) for k, (v, f) in surfaces.items()}
-    masks.update({k: m for k, m in fixed.items() if m is not None and m.any()})
+    so a long bone pays for its joints, not for its length; and each bone is worked in a window
+    around it, so n bones cost n windows, not n^2 whole grids. None: no other bone is near."""
+    masks = {k: _voxelize_local(v, f, shape, spacing) for k, (v, f) in surfaces.items()}
+    for k, m in fixed.items():
+        if m is not None and m.any():
+            box = bbox_slices(m, 0)
+            masks[k] = (box, m[box])
     pad = int(np.ceil(SDF_PAD_MM / spacing)) + 2
     out = {}
     for k in surfaces:
-        mine = masks[k]
-        if not mine.any():
+        box_k, sub_k = masks[k]
+        if not sub_k.any():
             out[k] = None
             continue
+        win = _window(box_k, shape, spacing, pad)
+        mine = _paste(masks[k], win)
         zone = near(mine, spacing, SDF_PAD_MM)
-        others = [m for j, m in masks.items() if j != k]
+        others = [_paste(m, win) for j, m in masks.items() if j != k]
+        others = [m for m in others if m is not None]
         close = [m & zone for m in others]
         if not any(c.any() for c in close):
             out[k] = None
             continue
-        union = np.zeros(shape, bool)
+        union = np.zeros(mine.shape, bool)
         for c in close:
             union |= c
         box = bbox_slices(union, pad)
@@ -89,8 +96,48 @@ def territories(surfaces: dict, fixed: dict, shape: tuple, spacing: float) -> di
         for m, c in zip(others, close):
             if c.any():
                 nearest = np.minimum(nearest, signed_distance(m, box, spacing))
-        origin = np.array([s_.start for s_ in box][::-1], dtype=np.float64) * spacing
-        out[k] = (origin, ((own - nearest) * 0.5).astype(np.float32))
+        start = np.array([w.start + b.start for w, b in zip(win, box)][::-1], dtype=np.float64)
+        out[k] = (start * spacing, ((own - nearest) * 0.5).astype(np.float32))
+    return out
+
+
+def _voxelize_local(vertices: np.ndarray, faces: np.ndarray, shape: tuple,
+                    spacing: float) -> tuple:
+    """(box, mask): :func:`voxelize` on the grid's part around the surface (box: z, y, x
+    slices; outside it no voxel centre is inside)."""
+    lo = np.maximum(np.floor(vertices.min(axis=0) / spacing).astype(int) - 1, 0)
+    hi = np.minimum(np.ceil(vertices.max(axis=0) / spacing).astype(int) + 2, np.array(shape[::-1]))
+    hi = np.maximum(hi, lo + 1)
+    box = tuple(slice(int(a), int(b)) for a, b in zip(lo[::-1], hi[::-1]))
+    sub = inside_mask(Surface(vertices - lo * spacing, faces),
+                      tuple(int(b - a) for a, b in zip(lo[::-1], hi[::-1])), spacing)
+    return box, sub
+
+
+def _window(box: tuple, shape: tuple, spacing: float, pad: int) -> tuple:
+    """The part of the grid (z, y, x slices) where :func:`territories` works for a bone whose
+    mask lies in ``box``: wide enough for :func:`near`'s reach of SDF_PAD_MM plus ``pad``, its
+    start on a block of :func:`near`'s coarse grid (the same zone as on the whole grid)."""
+    f = max(1, int(round(2.0 / spacing)))  # near()'s block (its step_mm = 2.0)
+    reach = (int(np.ceil(SDF_PAD_MM / (f * spacing))) + 2) * f + pad
+    win = []
+    for b, n in zip(box, shape):
+        a = max(0, b.start - reach)
+        a -= a % f
+        win.append(slice(a, min(n, b.stop + reach)))
+    return tuple(win)
+
+
+def _paste(entry: tuple, win: tuple):
+    """A (box, mask) entry on the window ``win`` (bool, the window's shape); None when they
+    do not meet."""
+    box, sub = entry
+    inter = [slice(max(b.start, w.start), min(b.stop, w.stop)) for b, w in zip(box, win)]
+    if any(i.start >= i.stop for i in inter):
+        return None
+    out = np.zeros(tuple(w.stop - w.start for w in win), bool)
+    out[tuple(slice(i.start - w.start, i.stop - w.start) for i, w in zip(inter, win))] = \
+        sub[tuple(slice(i.start - b.start, i.stop - b.start) for i, b in zip(inter, box))]
     return out
 
 

@@ -287,20 +287,83 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     -------
     Ownership
     """
-    shape = ct.shape
     r_core = max(CORE_MIN_MM, coarseness)
     r_contact = max(CONTACT_MIN_MM, coarseness)
-    labelled = labels > 0
-    cores = np.zeros(shape, np.uint16)
-    contact = np.zeros(shape, bool)
-    regions = {}
-    union = np.zeros(shape, bool)
-    core_depth = {}
-    present = [i for i in range(1, n + 1)]
     t_low = soft + LABEL_LEVEL_FRACTION * (ht - soft)
-    unsupported = np.zeros(shape, bool)
-    unsupported_info = {}
-    for step, i in enumerate(present):
+    seg = _label_parts(ct, labels, n, spacing, r_core=r_core, r_contact=r_contact,
+                       band_mm=band_mm, t_low=t_low, progress=progress)
+    labelled = labels > 0
+    fg, strong = _bone_foreground(ct, labelled, seg.cores, h0=h0, ht=ht, t_low=t_low,
+                                  theta_max=theta_max)
+    if progress:
+        progress(0.5, "bone evidence")
+    other = n + 1
+    markers, n_pieces = _markers(fg, strong, labels, seg, other, spacing)
+    quantum = max(VALLEY_QUANTUM_MIN_HU, VALLEY_QUANTUM_FRACTION * contrast)
+    radius = 0.5 * VALLEY_GAP_MM + spacing
+    levels = np.floor(np.clip(valley_map(ct, spacing, radius), 0, None) / quantum).astype(np.int32)
+    if progress:
+        progress(0.6, "flooding from the markers")
+    ws = flood_from_markers(markers, levels, fg)
+    # A visible joint space (cartilage between two cortices, below H0, in a valley of at least
+    # SEEN_VALLEY_QUANTA quanta) is no bone: it joins no bone's W_HT (removed below, after the
+    # contacts between the basins are measured).
+    joint_space = fg & ~strong & (seg.cores == 0) & (levels >= SEEN_VALLEY_QUANTA)
+    del levels
+    if progress:
+        progress(0.8, "contacts between bones")
+    faces = _interfaces(ws, fg, ct, spacing, quantum, radius)
+    merged = _merged_pieces(faces, ws, labels, n, range(other, other + n_pieces), spacing,
+                            reach_mm=band_mm + MERGE_REACH_COARSENESS * coarseness
+                            + MERGE_REACH_MM)
+    ws[joint_space] = 0
+    owner = _owners(ws, seg.regions, markers, labels, merged)
+    merged_ids = {p for p, _, _, _ in merged}
+    owner[(ws >= other) & ~np.isin(ws, list(merged_ids)) & (owner == 0)] = other
+    taken = np.isin(ws, list(merged_ids)) & (owner > 0) if merged_ids else None
+    merged_ml = {p: float((ws == p).sum() * spacing ** 3 / 1000.0) for p in merged_ids}
+    contacts = _pair_contacts(faces, n, other, merged_ids, spacing ** 2)
+    info = {"core_depth_mm": {int(k): float(v) for k, v in seg.core_depth.items()},
+            "contact_zone_mm": r_contact, "valley_quantum_hu": quantum, "label_level_hu": t_low,
+            "foreground_voxels": int(fg.sum()), "unlabelled_pieces": n_pieces,
+            "joint_space_voxels": int(joint_space.sum()),
+            "unsupported": {int(k): v for k, v in seg.unsupported_info.items()},
+            "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
+                                   "contact_mm2": round(s, 1), "ml": round(merged_ml[p], 2)}
+                                  for p, a, f, s in merged]}
+    if progress:
+        progress(1.0, "ownership done")
+    return Ownership(owner=owner, cores=seg.cores, regions=seg.regions, foreground=fg,
+                     other=other, contacts=contacts, info=info, unsupported=seg.unsupported,
+                     merged=taken)
+
+
+@dataclass
+class _LabelParts:
+    """Per label of :func:`compute_ownership`: cores (uint16 label index, 0 elsewhere), the
+    contact zone near other labels, regions ({i: (slices, bool region)}) and their union, the
+    core depth (mm), and the parts the CT shows to be soft tissue."""
+
+    cores: np.ndarray
+    contact: np.ndarray
+    regions: dict
+    union: np.ndarray
+    core_depth: dict
+    unsupported: np.ndarray
+    unsupported_info: dict
+
+
+def _label_parts(ct, labels, n, spacing, *, r_core, r_contact, band_mm, t_low,
+                 progress=None) -> _LabelParts:
+    """Each label's core (deeper than ``r_core``, without the parts the CT shows to be soft
+    tissue), region (closed, dilated by ``band_mm``) and contact zone (within ``r_contact`` of
+    another label)."""
+    shape = ct.shape
+    labelled = labels > 0
+    out = _LabelParts(cores=np.zeros(shape, np.uint16), contact=np.zeros(shape, bool),
+                      regions={}, union=np.zeros(shape, bool), core_depth={},
+                      unsupported=np.zeros(shape, bool), unsupported_info={})
+    for step, i in enumerate(range(1, n + 1)):
         m = labels == i
         if not m.any():
             continue
@@ -313,22 +376,29 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         bad, pieces = unsupported_parts(ct[sl], sub, core, spacing, level=t_low)
         if pieces:
             core &= ~bad
-            unsupported[sl] |= bad
-            unsupported_info[i] = pieces
-        cores[sl][core] = i
-        core_depth[i] = r
+            out.unsupported[sl] |= bad
+            out.unsupported_info[i] = pieces
+        out.cores[sl][core] = i
+        out.core_depth[i] = r
         ext = [np.nonzero(sub.any(axis=tuple(a for a in range(3) if a != ax)))[0] for ax in range(3)]
         extent = max(int(e.max() - e.min() + 1) for e in ext) * spacing
         reg = segment_region(sub, spacing, close_mm=min(REGION_CLOSE_MM, REGION_CLOSE_FRACTION * extent),
                              dilate_mm=band_mm)
-        regions[i] = (sl, reg)
-        union[sl] |= reg
+        out.regions[i] = (sl, reg)
+        out.union[sl] |= reg
         others = labelled[sl] & ~sub
         if others.any():
             d_other = distance_outside(others) * spacing
-            contact[sl] |= sub & (d_other <= r_contact)
+            out.contact[sl] |= sub & (d_other <= r_contact)
         if progress:
-            progress(0.4 * (step + 1) / len(present), "segment regions")
+            progress(0.4 * (step + 1) / n, "segment regions")
+    return out
+
+
+def _bone_foreground(ct, labelled, cores, *, h0, ht, t_low, theta_max) -> tuple:
+    """(fg, strong): the bone evidence - the components of [HT, theta_max] (in a label:
+    [t_low, theta_max]) that hold [H0, theta_max] or a core, with the cores - and [H0,
+    theta_max] itself."""
     in_window = ((ct >= ht) | (labelled & (ct >= t_low))) & (ct <= theta_max)
     strong = (ct >= h0) & (ct <= theta_max)
     lab, nl = ndimage.label(in_window, structure=SIX)
@@ -336,14 +406,17 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     keep[np.unique(lab[(strong | (cores > 0)) & in_window])] = True
     keep[0] = False
     fg = keep[lab] | (cores > 0) | (labelled & in_window)
-    del lab
-    if progress:
-        progress(0.5, "bone evidence")
-    other = n + 1
-    markers = np.where(fg & strong & labelled & ~contact, labels, 0).astype(np.uint16)
-    core_marker = (cores > 0) & ~contact
-    markers[core_marker] = cores[core_marker]
-    om = fg & strong & ~union & (markers == 0)
+    return fg, strong
+
+
+def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float) -> tuple:
+    """The flooding's markers (uint16): each label's strong bone and core outside the contact
+    zones, and the unlabelled pieces of strong bone outside every region (of at least
+    MIN_OTHER_PIECE_MM3) numbered from ``other``; returns (markers, number of pieces)."""
+    markers = np.where(fg & strong & (labels > 0) & ~seg.contact, labels, 0).astype(np.uint16)
+    core_marker = (seg.cores > 0) & ~seg.contact
+    markers[core_marker] = seg.cores[core_marker]
+    om = fg & strong & ~seg.union & (markers == 0)
     olab, no = ndimage.label(om, structure=SIX)
     n_pieces = 0
     if no:
@@ -354,26 +427,18 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         remap = np.zeros(no + 1, np.uint32)
         remap[ok] = np.arange(n_pieces) + other
         markers[om] = remap[olab[om]].astype(np.uint16)
-    del olab, om
-    quantum = max(VALLEY_QUANTUM_MIN_HU, VALLEY_QUANTUM_FRACTION * contrast)
-    radius = 0.5 * VALLEY_GAP_MM + spacing
-    levels = np.floor(np.clip(valley_map(ct, spacing, radius), 0, None) / quantum).astype(np.int32)
-    if progress:
-        progress(0.6, "flooding from the markers")
-    ws = flood_from_markers(markers, levels, fg)
-    # A visible joint space (cartilage between two cortices, below H0, in a valley of at least
-    # SEEN_VALLEY_QUANTA quanta) is no bone: it joins no bone's W_HT (removed below, after the
-    # contacts between the basins are measured).
-    joint_space = fg & ~strong & (cores == 0) & (levels >= SEEN_VALLEY_QUANTA)
-    del levels
-    if progress:
-        progress(0.8, "contacts between bones")
-    faces = _interfaces(ws, fg, ct, spacing, quantum, radius)
-    # Unlabelled pieces meeting a bone without a valley: the bone's own, missed by the segment.
+    return markers, n_pieces
+
+
+def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
+                   reach_mm: float) -> list:
+    """Unlabelled pieces meeting a bone without a valley: the bone's own, missed by the
+    segment - only what lies within ``reach_mm`` of its label (a whole neighbouring bone
+    without a visible joint space does not). [(piece, bone, valley fraction, contact mm^2)]"""
     area = spacing ** 2
     merged = []
     reach_of = {}
-    for piece in range(other, other + n_pieces):
+    for piece in pieces:
         best = None
         for (a, b), (tot, vis) in faces.items():
             if b != piece or a > n:
@@ -385,19 +450,24 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         a, tot, vis = best
         if vis / tot >= MERGE_MAX_VALLEY_FRACTION or tot * area < MERGE_MIN_AREA_MM2:
             continue
-        # Only what the segment plausibly missed: the piece lies within reach of the label
-        # (a whole neighbouring bone without a visible joint space does not).
         if a not in reach_of:
             reach_of[a] = coarse_distance(labels == a, spacing)
         dist, f = reach_of[a]
         zi, yi, xi = np.nonzero(ws == piece)
         far = dist[zi // f, yi // f, xi // f].max()
-        if far <= band_mm + MERGE_REACH_COARSENESS * coarseness + MERGE_REACH_MM:
+        if far <= reach_mm:
             merged.append((piece, a, vis / tot, tot * area))
+    return merged
+
+
+def _owners(ws, regions: dict, markers, labels, merged: list) -> np.ndarray:
+    """Owner (uint16 label index, 0 none) of each voxel: label i's basin within its region
+    (with the pieces merged into it), its fragments kept when they hold a marker of i or lie
+    mostly in the label."""
+    shape = ws.shape
     grow: dict = {}
     for piece, a, _, _ in merged:
         grow.setdefault(a, []).append(piece)
-    ws[joint_space] = 0
     owner = np.zeros(shape, np.uint16)
     for i, (sl, reg) in regions.items():
         own = ws == i
@@ -421,11 +491,12 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             ok[0] = False
             own = ok[lab_i]
         owner[own] = i
-    merged_ids = {p for p, _, _, _ in merged}
-    owner[(ws >= other) & ~np.isin(ws, list(merged_ids)) & (owner == 0)] = other
-    taken = np.isin(ws, list(merged_ids)) & (owner > 0) if merged_ids else None
-    merged_ml = {p: float((ws == p).sum() * spacing ** 3 / 1000.0) for p in merged_ids}
-    # Per-pair contacts, other-bone pieces pooled.
+    return owner
+
+
+def _pair_contacts(faces: dict, n: int, other: int, merged_ids: set, area: float) -> list:
+    """Per pair of labels (the unlabelled pieces pooled as ``other``): contact area (mm^2)
+    and the fraction of it where a joint space is seen."""
     pooled: dict = {}
     for (a, b), (tot, vis) in faces.items():
         a2 = a if a <= n else other
@@ -435,18 +506,6 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         key = (min(a2, b2), max(a2, b2))
         t0, v0 = pooled.get(key, (0, 0))
         pooled[key] = (t0 + tot, v0 + vis)
-    contacts = [{"a": a, "b": b, "contact_area_mm2": tot * area,
-                 "valley_seen_fraction": vis / tot if tot else 0.0}
-                for (a, b), (tot, vis) in sorted(pooled.items())]
-    info = {"core_depth_mm": {int(k): float(v) for k, v in core_depth.items()},
-            "contact_zone_mm": r_contact, "valley_quantum_hu": quantum, "label_level_hu": t_low,
-            "foreground_voxels": int(fg.sum()), "unlabelled_pieces": n_pieces,
-            "joint_space_voxels": int(joint_space.sum()),
-            "unsupported": {int(k): v for k, v in unsupported_info.items()},
-            "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
-                                   "contact_mm2": round(s, 1), "ml": round(merged_ml[p], 2)}
-                                  for p, a, f, s in merged]}
-    if progress:
-        progress(1.0, "ownership done")
-    return Ownership(owner=owner, cores=cores, regions=regions, foreground=fg, other=other,
-                     contacts=contacts, info=info, unsupported=unsupported, merged=taken)
+    return [{"a": a, "b": b, "contact_area_mm2": tot * area,
+             "valley_seen_fraction": vis / tot if tot else 0.0}
+            for (a, b), (tot, vis) in sorted(pooled.items())]

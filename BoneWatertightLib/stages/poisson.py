@@ -157,6 +157,10 @@ class Fusion:
     ``genus``: where the surface has more tunnels than the segment, the segment fills them
     (:func:`_fill_tunnels`: a label-restricted closing by ``close_mm[0]``, then plugs of
     holes, :func:`_plugs`, reaching ``close_mm[0]`` to both sides).
+    ``carve``: optional (z, y, x) bool on the label's grid, voxels that are neither bone on
+    the CT nor the segment (:func:`carve_region`): the occupancy is cut back out of them before
+    contouring (Poisson closes over tunnels and deep concavities it cannot see into, e.g. a
+    curved canal).
     ``info`` is filled with what was done.
     """
 
@@ -169,6 +173,9 @@ class Fusion:
     close_mm: tuple = ()
     info: dict = field(default_factory=dict)
     fill_mask: tuple = None  # (voxels the segment filled (z, y, x) bool, origin, step)
+    # (z, y, x) bool on the label's grid: neither bone nor segment (see :func:`carve_region`);
+    # the surface is kept out of it.
+    carve: np.ndarray = None
 
 
 def surface_genus(surface: Surface) -> int:
@@ -182,17 +189,43 @@ def surface_genus(surface: Surface) -> int:
     return max(0, (2 - chi) // 2)
 
 
-def _label_on(fusion: Fusion, shape: tuple, lo: np.ndarray, h: float) -> np.ndarray:
-    """The fusion's label, nearest-neighbour on the remeshing grid (z, y, x)."""
+def _label_on(fusion: Fusion, shape: tuple, lo: np.ndarray, h: float,
+              mask: Optional[np.ndarray] = None) -> np.ndarray:
+    """The fusion's label (or ``mask``, on the label's grid), nearest-neighbour on the
+    remeshing grid (z, y, x)."""
     axes = []
     for a, n in zip(range(3), shape[::-1]):
         q = np.rint((lo[a] + h * np.arange(n) - fusion.label_origin[a]) / fusion.label_spacing)
         axes.append(q.astype(np.int64))
-    lab = fusion.label
+    lab = fusion.label if mask is None else mask
     valid = [(q >= 0) & (q < lab.shape[2 - a]) for a, q in enumerate(axes)]
     idx = [np.clip(q, 0, lab.shape[2 - a] - 1) for a, q in enumerate(axes)]
     out = lab[np.ix_(idx[2], idx[1], idx[0])]
     return out & valid[2][:, None, None] & valid[1][None, :, None] & valid[0][None, None, :]
+
+
+def carve_region(segment: np.ndarray, bone: np.ndarray, spacing: float, segment_margin_mm: float,
+                 bone_margin_mm: float) -> np.ndarray:
+    """Voxels that are neither bone nor segment: farther than ``segment_margin_mm`` from the
+    segment and farther than ``bone_margin_mm`` from the bone the CT shows.
+
+    Parameters
+    ----------
+    segment, bone : (z, y, x) bool arrays of one grid
+        The (trusted) segment and the bone at HT with thin plates (filled).
+    spacing : float
+        Grid step (mm).
+    segment_margin_mm, bone_margin_mm : float
+
+    Returns
+    -------
+    (z, y, x) bool array
+    """
+    from ..mesh.distance import distance_outside
+
+    free = distance_outside(segment, spacing) > segment_margin_mm
+    free &= distance_outside(bone, spacing) > bone_margin_mm
+    return free
 
 
 def _close_with_label(field_zyx: np.ndarray, label: np.ndarray, h: float,
@@ -234,6 +267,8 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
     field = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
     if fusion is not None and fusion.plates is not None:
         np.maximum(field, fusion.plates(field.shape, lo, h), out=field)
+    if fusion is not None and fusion.carve is not None and fusion.label is not None:
+        field = _carve(field, lo, h, fusion)
     out = contour(field, lo, h, 0.5, smooth_iterations) if field.max() > 0.5 else None
     if out is not None and fusion is not None and fusion.label is not None \
             and fusion.genus is not None:
@@ -244,6 +279,21 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
             f"Remeshing M0 at edge length {edge_length:g} mm left {out.n_faces if out else 0} "
             "triangles: the bone is too small for that edge length. Use a smaller edge_length "
             "(or leave it on auto) and a finer resample spacing.")
+    return out
+
+
+def _carve(field_zyx: np.ndarray, lo, h: float, fusion: Fusion) -> np.ndarray:
+    """The occupancy field cut back out of ``fusion.carve`` (a soft edge of the remesh's own
+    smoothing, so the cut surface lies on the carve region's border); the carved volume in
+    ``fusion.info``."""
+    carve = _label_on(fusion, field_zyx.shape, np.asarray(lo, np.float64), h, fusion.carve)
+    inside = field_zyx >= 0.5
+    if not (carve & inside).any():
+        fusion.info.update(carved_mm3=0.0)
+        return field_zyx
+    ramp = ndimage.gaussian_filter(carve.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
+    out = np.minimum(field_zyx, 1.0 - np.minimum(1.0, 2.0 * ramp))
+    fusion.info.update(carved_mm3=float((inside & (out < 0.5)).sum() * h ** 3))
     return out
 
 
