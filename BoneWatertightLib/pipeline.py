@@ -82,8 +82,8 @@ HT_BEYOND_H0_MM = 1.0
 # A pair whose bone evidence touches over more than JOINT_WARN_MIN_MM2 with a joint space
 # visible on less than JOINT_WARN_SEEN of it gets a warning: there the boundary between them
 # follows the labels alone (a narrow joint on thick slices), and wrong labels move it.
-JOINT_WARN_SEEN = 0.5
-JOINT_WARN_MIN_MM2 = 25.0
+JOINT_WARN_SEEN = _plaus.JOINT_WARN_SEEN
+JOINT_WARN_MIN_MM2 = _plaus.JOINT_WARN_MIN_MM2
 # Vertices farther than this (mm) from every other bone's voxels are its free surface (where
 # the edge refinement's support is measured).
 FREE_SURFACE_MM = 2.0
@@ -882,6 +882,11 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
         unsupported=None if own.unsupported is None else own.unsupported[box],
         unsupported_pieces=len(own.info.get("unsupported", {}).get(k, [])),
         unlabelled=None if own.merged is None else own.merged[box] & (own.owner[box] == k))
+    for cc in own.contacts:
+        if cc["a"] == k and cc["b"] == own.other:
+            plaus.unlabelled_contact_mm2 = float(cc["contact_area_mm2"])
+            plaus.unlabelled_contact_seen = float(cc["valley_seen_fraction"])
+    plaus.surface_area_mm2 = surface_area(phys, faces)
     _plaus.gate(plaus, coarseness=ws.prep.coarseness, band_mm=ws.band, name=bone.name)
     return plaus, box, seg_all[box]
 

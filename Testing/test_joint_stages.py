@@ -405,3 +405,25 @@ def test_m0_is_cut_back_out_of_what_is_neither_bone_nor_segment():
     assert surface_genus(cut) == 1
     assert fusion.info["carved_mm3"] > 0.5 * np.pi * 4.0 ** 2 * 16.0 * 0.5
     assert check_surface(cut.vertices, cut.faces).ok
+
+
+def test_contact_with_unlabelled_bone_without_a_joint_space_fails_or_warns():
+    """Against bone no segment labels the boundary is the flooding's guess where the CT shows
+    no joint space: a large share of the surface there fails the run (label the neighbour), a
+    smaller one warns, a seen joint space says nothing."""
+    def gated(area, seen, surface=10000.0):
+        p = plausibility.Plausibility(segment_ml=10.0, surface_ml=10.0, volume_ratio=1.0,
+                                      unlabelled_contact_mm2=area, unlabelled_contact_seen=seen,
+                                      surface_area_mm2=surface)
+        return plausibility.gate(p, coarseness=1.0, band_mm=3.0, name="femur")
+
+    p = gated(2400.0, 0.28)  # 1728 mm^2 unseen: 17 % of the surface
+    assert len(p.problems) == 1 and "Label the neighbouring bone" in p.problems[0]
+    assert "17 % of the surface" in p.problems[0]
+    p = gated(940.0, 0.45)  # 5 % unseen: the boundary is a guess there, say so
+    assert not p.problems and len(p.warnings) == 1
+    assert p.warnings[0].startswith("femur | unlabelled bone: the CT shows a joint space on only 45 %")
+    p = gated(3500.0, 0.81)  # a joint space seen on most of it
+    assert not p.problems and not p.warnings
+    p = gated(0.0, 1.0)
+    assert not p.problems and not p.warnings
