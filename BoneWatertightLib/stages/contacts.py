@@ -282,6 +282,13 @@ def push_apart_exact(va, fa, vb, fb, spacing: float, rounds: int = EXACT_ROUNDS)
     return va, vb, ok
 
 
+def _faces_meeting(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The faces (m, 3) of (v, f) whose bounding boxes meet the box [lo, hi] (x-y-z mm)."""
+    tri = v[f]
+    keep = np.all(tri.min(axis=1) <= hi, axis=1) & np.all(tri.max(axis=1) >= lo, axis=1)
+    return f[keep]
+
+
 def pair_report(va, fa, vb, fb) -> dict:
     """Exact check of two surfaces (vertices in any common frame, mm).
 
@@ -299,11 +306,17 @@ def pair_report(va, fa, vb, fb) -> dict:
            "min_gap_mm": None, "contact_area_mm2": 0.0}
     if np.any(hi < lo):
         return out
-    merged = np.vstack([va, vb])
-    mf = np.vstack([fa, fb + len(va)])
-    pairs = find_self_intersections(merged, mf)
-    if len(pairs):
-        out["crossing_face_pairs"] = int(((pairs[:, 0] < len(fa)) != (pairs[:, 1] < len(fa))).sum())
+    # Faces of one can cross faces of the other only where their boxes overlap: the exact
+    # test runs on the faces whose own boxes meet that region (a long bone pays for its joint).
+    sub_a = _faces_meeting(va, fa, lo, hi)
+    sub_b = _faces_meeting(vb, fb, lo, hi)
+    if len(sub_a) and len(sub_b):
+        merged = np.vstack([va, vb])
+        mf = np.vstack([sub_a, sub_b + len(va)])
+        pairs = find_self_intersections(merged, mf)
+        if len(pairs):
+            out["crossing_face_pairs"] = int(((pairs[:, 0] < len(sub_a))
+                                              != (pairs[:, 1] < len(sub_a))).sum())
 
     def distances(points, v, f):
         loc = vtk.vtkCellLocator()
