@@ -581,9 +581,10 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
                                              | (own.owner[masks.box] == k))
     if own.unsupported is not None:
         trusted &= ~own.unsupported[masks.box]
-    # The segment at its own resolution: its stair steps and holes smaller than that are no
-    # tunnels of the bone (plausibility.smoothed_segment).
-    fusion = _poisson.Fusion(label=_plaus.smoothed_segment(trusted, d, ws.prep.coarseness),
+    # The segment's tunnels counted at its own resolution (its stair steps and holes smaller
+    # than that are no tunnels of the bone: plausibility.segment_genus); the fill takes its
+    # material from the segment itself (smoothing would thin its thin parts away).
+    fusion = _poisson.Fusion(label=trusted,
                              label_origin=np.zeros(3), label_spacing=d,
                              genus=_plaus.segment_genus(trusted, d, ws.prep.coarseness),
                              close_mm=(ws.prep.coarseness,))
