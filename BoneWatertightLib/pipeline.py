@@ -359,7 +359,7 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
                     slots=len(ws.targets) + 1)
     results = [done[k] if k in done else _failed_result(ws, k, run.failed[k])
                for k in ws.targets]
-    pairs = pair_stage(ws, results, keep_going=run.keep_going)
+    pairs = pair_stage(ws, results, keep_going=run.keep_going, min_gap=run.params.min_gap)
     run.times.total = time.perf_counter() - t_all
     for r in results:
         if r.ok:
@@ -958,7 +958,8 @@ def _failed_result(ws: Workspace, k: int, error: BaseException) -> Reconstructio
                                 label=ws.value_of(k), name=ws.name_of(k), error=error)
 
 
-def pair_stage(ws: Workspace, results: list, keep_going: bool = False) -> list:
+def pair_stage(ws: Workspace, results: list, keep_going: bool = False,
+               min_gap: float = 0.0) -> list:
     """Every pair of finished bones checked exactly (PairReport), the joint warnings; an
     interpenetrating pair fails the run (ReconstructionError) or, with ``keep_going``, both
     of its bones (their entries of ``results`` are replaced by failed results naming the
@@ -980,6 +981,15 @@ def pair_stage(ws: Workspace, results: list, keep_going: bool = False) -> list:
                 joint_valley_seen_fraction=(float(joint["valley_seen_fraction"])
                                             if joint else None)))
     for p in pairs:
+        if p.ok and p.min_gap_mm is not None and p.min_gap_mm < min_gap:
+            # The contact passes work on voxel fields: a sub-voxel approach can be left.
+            p.warnings.append(
+                f"{p.a} | {p.b}: the surfaces come within {p.min_gap_mm:.2f} mm of each other "
+                f"(min_gap {min_gap:g} mm), without crossing: check the joint, or use a finer "
+                "resample spacing")
+            for r in (by_k[k] for k in good):
+                if r.name in (p.a, p.b):
+                    r.report.warnings.append(p.warnings[-1])
         seen = p.joint_valley_seen_fraction
         if seen is not None and seen < JOINT_WARN_SEEN and p.joint_contact_mm2 > JOINT_WARN_MIN_MM2:
             p.warnings.append(

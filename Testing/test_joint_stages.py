@@ -360,6 +360,12 @@ def test_an_interpenetrating_pair_fails_the_run_or_only_its_two_bones():
         assert "interpenetrate (bone1 and bone2" in str(r.error) and r.surface is None
     assert [(p.a, p.b) for p in pairs] == [("bone3", "bone4")] and pairs[0].ok
     assert pairs[0].min_gap_mm == pytest.approx(1.0, abs=0.3)
+    assert not pairs[0].warnings  # no min_gap asked
+    ws, results = _pair_scene(centres[2:])
+    pairs = pair_stage(ws, results, min_gap=2.0)
+    assert pairs[0].ok and len(pairs[0].warnings) == 1
+    assert "come within" in pairs[0].warnings[0] and "(min_gap 2 mm)" in pairs[0].warnings[0]
+    assert all(pairs[0].warnings[0] in r.report.warnings for r in results)
 
 
 def test_exit_code_of_a_run_of_several_bones():
