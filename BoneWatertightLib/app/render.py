@@ -607,8 +607,10 @@ def render_surface(surface: Surface, path, ct=None, title: Optional[str] = None,
     if isinstance(scalars, str) and scalars == "auto" and "Confidence" in surface.point_data:
         # How much CT evidence stands under each vertex (stages.evidence), on its own 0-1 scale.
         scalars = "Confidence"
-        scalar_label = scalar_label or "CT support (confidence)"
+        scalar_label = scalar_label or "CT support"
         scalar_range = scalar_range or (0.0, 1.0)
+    # The colour bar's last line: the scale's unit (confidence has none: 0-1).
+    unit = "(confidence 0-1)" if isinstance(scalars, str) and scalars == "Confidence" else "(mm)"
     values = _resolve_scalars(surface, scalars)
     lut = None
     if values is not None:
@@ -664,7 +666,7 @@ def render_surface(surface: Surface, path, ct=None, title: Optional[str] = None,
             bar.SetWidth(0.85)
             bar.SetHeight(0.68)
             ren.AddViewProp(bar)
-            for k, line in enumerate(label.split(" ", 1) + ["(mm)"]):
+            for k, line in enumerate(label.split(" ", 1) + [unit]):
                 _text(ren, line, 0.5, 0.93 - 0.045 * k, size=13, bold=True, align="center",
                       valign="top")
         if ct is not None:
