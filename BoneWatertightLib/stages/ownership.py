@@ -74,9 +74,12 @@ REGION_CLOSE_FRACTION = 0.15
 # tissue (below the label level after smoothing by SUPPORT_SMOOTH_MM) and which reaches the
 # label's core is bone only when at least SUPPORT_MIN_FRACTION of its surroundings is not soft
 # tissue (a marrow cavity or a low-density body inside its cortex: most of it; a false blob of
-# the segment stuck to the bone from the soft tissue: only the contact).
+# the segment stuck to the bone from the soft tissue: only the contact). Measured (support of
+# the parts reaching the core): false blobs of 3 mm radius on femur phantoms 0.15-0.21; marrow
+# and low-density heads of the phantoms 0.58-0.94; the trabecular bodies of real vertebrae and
+# the sacrum on the 3 mm CT 0.44-0.47 (discs above and below) - 0.5 removed 2.1 ml of L5 there.
 SUPPORT_SMOOTH_MM = 1.0
-SUPPORT_MIN_FRACTION = 0.5
+SUPPORT_MIN_FRACTION = 0.3
 
 
 @dataclass
