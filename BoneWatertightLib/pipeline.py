@@ -980,26 +980,24 @@ def pair_stage(ws: Workspace, results: list, keep_going: bool = False,
                 joint_contact_mm2=float(joint["contact_area_mm2"]) if joint else 0.0,
                 joint_valley_seen_fraction=(float(joint["valley_seen_fraction"])
                                             if joint else None)))
+    def warn(p, text):  # on the pair and on both of its bones
+        p.warnings.append(text)
+        for k in good:
+            if by_k[k].name in (p.a, p.b):
+                by_k[k].report.warnings.append(text)
+
     for p in pairs:
         if p.ok and p.min_gap_mm is not None and p.min_gap_mm < min_gap:
             # The contact passes work on voxel fields: a sub-voxel approach can be left.
-            p.warnings.append(
-                f"{p.a} | {p.b}: the surfaces come within {p.min_gap_mm:.2f} mm of each other "
-                f"(min_gap {min_gap:g} mm), without crossing: check the joint, or use a finer "
-                "resample spacing")
-            for r in (by_k[k] for k in good):
-                if r.name in (p.a, p.b):
-                    r.report.warnings.append(p.warnings[-1])
+            warn(p, f"{p.a} | {p.b}: the surfaces come within {p.min_gap_mm:.2f} mm of each "
+                    f"other (min_gap {min_gap:g} mm), without crossing: check the joint, or use "
+                    "a finer resample spacing")
         seen = p.joint_valley_seen_fraction
         if seen is not None and seen < JOINT_WARN_SEEN and p.joint_contact_mm2 > JOINT_WARN_MIN_MM2:
-            p.warnings.append(
-                f"{p.a} | {p.b}: the CT shows a joint space on only {100 * seen:.0f} % of their "
-                f"{p.joint_contact_mm2:.0f} mm^2 contact; elsewhere the boundary between them "
-                "follows the segments' labels (a narrow joint on thick slices, or no joint space "
-                "at all): check both surfaces at the joint")
-            for r in (by_k[k] for k in good):
-                if r.name in (p.a, p.b):
-                    r.report.warnings.append(p.warnings[-1])
+            warn(p, f"{p.a} | {p.b}: the CT shows a joint space on only {100 * seen:.0f} % of "
+                    f"their {p.joint_contact_mm2:.0f} mm^2 contact; elsewhere the boundary between "
+                    "them follows the segments' labels (a narrow joint on thick slices, or no "
+                    "joint space at all): check both surfaces at the joint")
     # The same for a bone and a neighbour label that is not reconstructed in this run.
     for cc in own.contacts:
         for k, other in ((cc["a"], cc["b"]), (cc["b"], cc["a"])):
