@@ -462,3 +462,41 @@ def test_mirror_symmetric_spheres_that_cross_only_through_edges():
     assert len(find_self_intersections(v, f)) > 20
     touching = merge((va, fa), icosphere(3, radius=8.0, centre=(0.0, 0.0, 16.0)))
     assert len(find_self_intersections(*touching)) == 0
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_only_gives_the_pairs_with_one_of_those_faces(seed):
+    """find_self_intersections(only=...) is the full answer filtered to pairs with a face of
+    ``only``: on a tangled soup and on a noisy sphere with faces of every size."""
+    rng = np.random.default_rng(200 + seed)
+    if seed % 2:
+        v, f = icosphere(3)
+        v = v + rng.normal(scale=0.05, size=v.shape)
+        v[rng.choice(len(v), 3)] *= 2.0  # a few long faces
+    else:
+        n = 14
+        v = rng.random((n, 3)) * 10.0
+        triples = np.array(list(itertools.combinations(range(n), 3)))
+        f = triples[rng.choice(len(triples), 40, replace=False)]
+    full = find_self_intersections(v, f)
+    assert len(full) > 0
+    only = rng.random(len(f)) < 0.2
+    expected = {p for p in pair_set(full) if only[p[0]] or only[p[1]]}
+    assert pair_set(find_self_intersections(v, f, only=only)) == expected
+    assert len(find_self_intersections(v, f, only=np.zeros(len(f), bool))) == 0
+
+
+def test_safe_update_backs_off_a_local_step_through_the_surface():
+    """A step that pushes one vertex through the far side is backed off (the test looks only
+    near the moved faces, and finds the crossing there)."""
+    from BoneWatertightLib.mesh.operators import safe_update
+
+    v, f = icosphere(3, radius=10.0)
+    new = v.copy()
+    new[0] *= -1.5
+    out, ok, _ = safe_update(v, new, f, intersections=True)
+    assert ok and np.array_equal(out, v)
+    small = v.copy()
+    small[0] *= 1.05  # a small step outward is kept
+    out, ok, _ = safe_update(v, small, f, intersections=True)
+    assert ok and np.array_equal(out, small)

@@ -269,18 +269,27 @@ def _check_topology(rep: SurfaceReport, faces: np.ndarray, n: int) -> None:
 # Self-intersections
 
 def find_self_intersections(vertices, faces, max_pairs: Optional[int] = None,
-                            exclude: Optional[np.ndarray] = None) -> np.ndarray:
+                            exclude: Optional[np.ndarray] = None,
+                            only: Optional[np.ndarray] = None) -> np.ndarray:
     """Pairs of faces whose interiors intersect, as a (k, 2) int64 array (i < j, sorted).
 
     Broad phase: face bounding boxes binned into a uniform grid; each box pair is produced once
     (in the cell holding the low corner of the boxes' overlap). Narrow phase: exact vectorised
     tests that know about shared vertices and edges (see the module docstring for the policy).
-    ``exclude`` (bool per face) leaves faces out, e.g. degenerate ones.
+    ``exclude`` (bool per face) leaves faces out, e.g. degenerate ones. ``only`` (bool per
+    face): just the pairs with at least one of these faces (e.g. the faces a step moved, on a
+    surface that was free of intersections before it); the others are tested only where they
+    are near one of them.
     """
     vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
     empty = np.zeros((0, 2), dtype=np.int64)
     keep = np.ones(len(faces), dtype=bool) if exclude is None else ~np.asarray(exclude, bool)
+    if only is not None:
+        only = np.asarray(only, bool) & keep
+        if not only.any():
+            return empty
+        keep &= _near_faces(vertices, faces, only)
     face_ids = np.flatnonzero(keep)
     if len(face_ids) < 2:
         return empty
@@ -333,11 +342,29 @@ def find_self_intersections(vertices, faces, max_pairs: Optional[int] = None,
     if not found:
         return empty
     pairs = face_ids[np.concatenate(found)]
+    if only is not None:
+        pairs = pairs[only[pairs[:, 0]] | only[pairs[:, 1]]]
+        if not len(pairs):
+            return empty
     pairs = np.sort(pairs, axis=1)
     pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
     if max_pairs is not None:
         pairs = pairs[:max_pairs]
     return pairs
+
+
+def _near_faces(vertices: np.ndarray, faces: np.ndarray, only: np.ndarray) -> np.ndarray:
+    """Bool per face: its bounding box may meet the box of a face of ``only`` (a centroid
+    lies in its box, so two boxes that meet have centroids at most their two diagonals
+    apart)."""
+    from scipy.spatial import cKDTree
+
+    tri = vertices[faces]
+    centroid = tri.mean(axis=1)
+    diag = np.linalg.norm(tri.max(axis=1) - tri.min(axis=1), axis=1)
+    reach = 2.0 * float(diag.max()) * (1.0 + 1e-6) + 1e-9 * (1.0 + float(np.abs(tri).max()))
+    dist, _ = cKDTree(centroid[only]).query(centroid, k=1, distance_upper_bound=reach)
+    return np.isfinite(dist) | only
 
 
 def _candidate_pairs(lo: np.ndarray, hi: np.ndarray):

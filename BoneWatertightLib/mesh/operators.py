@@ -154,7 +154,9 @@ def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int
         if not bad.any():
             if not intersections:
                 return new, True, 0
-            pairs = find_self_intersections(new, faces)
+            # ``old`` is free of intersections: only faces that moved can make one.
+            moved = np.any(new != old, axis=1)[faces].any(axis=1)
+            pairs = find_self_intersections(new, faces, only=moved)
             if len(pairs) == 0:
                 return new, True, 0
             bad[np.unique(pairs)] = True

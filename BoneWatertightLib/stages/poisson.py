@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import threading
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -46,6 +47,7 @@ MIN_REMESH_FACES = 4
 
 
 _OPEN3D = None
+_POISSON_LOCK = threading.Lock()
 _DLL_DIRECTORY = None  # Windows: kept open while the bindings are loaded
 
 
@@ -199,7 +201,9 @@ def poisson_surface(points: np.ndarray, normals: np.ndarray, depth: int) -> Surf
     pcd.points = o3d.utility.Vector3dVector(points)
     pcd.normals = o3d.utility.Vector3dVector(normals)
     # n_threads=-1 is ~10x slower than 1 thread here (thread oversubscription): measured.
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error), \
+    # One Poisson at a time: the verbosity and file descriptor 2 are the process's, and bones
+    # worked in threads would restore each other's.
+    with _POISSON_LOCK, o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error), \
             native_stderr_silenced():
         mesh, _density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
             pcd, depth=depth, scale=POISSON_SCALE, linear_fit=False, n_threads=1)
