@@ -289,7 +289,8 @@ def find_self_intersections(vertices, faces, max_pairs: Optional[int] = None,
         only = np.asarray(only, bool) & keep
         if not only.any():
             return empty
-        keep &= _near_faces(vertices, faces, only)
+        if only.sum() < NEAR_FACES_FRACTION * keep.sum():
+            keep &= _near_faces(vertices, faces, only)
     face_ids = np.flatnonzero(keep)
     if len(face_ids) < 2:
         return empty
@@ -351,6 +352,11 @@ def find_self_intersections(vertices, faces, max_pairs: Optional[int] = None,
     if max_pairs is not None:
         pairs = pairs[:max_pairs]
     return pairs
+
+
+# find_self_intersections(only=...) prunes the faces far from ``only`` when these are fewer
+# than this fraction of the faces (beyond it the pruning costs more than it saves).
+NEAR_FACES_FRACTION = 0.25
 
 
 def _near_faces(vertices: np.ndarray, faces: np.ndarray, only: np.ndarray) -> np.ndarray:
