@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import time
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
@@ -81,7 +82,7 @@ CONTACT_RETRIES = 3
 # Bones worked at once (threads) by the per-bone stages: numpy, scipy.ndimage, SimpleITK and edt
 # release the GIL in their loops (two threads measured 1.5-2.3x on dilation, labelling, rank
 # filters, interpolation and sorting on this project's volumes). At most this many, one per
-# CPU, and only as many as max_memory_gb holds (bone_threads).
+# CPU, and only as many as max_memory_gb holds (bone_schedule).
 MAX_BONE_THREADS = 4
 # How often the calling thread passes the bones' progress on (s) while they run in threads.
 RELAY_POLL_S = 0.2
@@ -287,6 +288,8 @@ class _Run:
     fallbacks: FallbackLog = field(default_factory=FallbackLog)
     failed: dict = field(default_factory=dict)
     threads: int = 1
+    costs: dict = field(default_factory=dict)   # bone k -> bytes it may need (bone_schedule)
+    budget: float = float("inf")                # bytes the bones at once may need
 
     def stage(self, name: str) -> Progress:
         return _stage(self.progress, name)
@@ -327,8 +330,10 @@ class _Run:
         cancelled = None
         with ThreadPoolExecutor(min(self.threads, len(todo)),
                                 thread_name_prefix="bonewatertight") as pool:
+            budget = _Budget(self.budget)
             for j, (_, k) in enumerate(todo):
-                futures.append(pool.submit(work, k, Progress(relay.callback(j))))
+                futures.append(pool.submit(budget.run, self.costs.get(k, 0.0), work, k,
+                                           Progress(relay.callback(j))))
             pending = set(futures)
             while pending:
                 finished, pending = wait(pending, timeout=RELAY_POLL_S)
@@ -354,6 +359,32 @@ class _Run:
             elif not (isinstance(exc, CancelledError) and relay.stopped):
                 self.fail(k, exc)
         return out
+
+
+class _Budget:
+    """Bones start only while the costs of those running fit the budget (one always may)."""
+
+    def __init__(self, budget: float):
+        import threading
+
+        self._budget = budget
+        self._running = 0.0
+        self._count = 0
+        self._free = threading.Condition()
+
+    def run(self, cost: float, work, *args):
+        with self._free:
+            self._free.wait_for(lambda: self._count == 0
+                                or self._running + cost <= self._budget)
+            self._running += cost
+            self._count += 1
+        try:
+            return work(*args)
+        finally:
+            with self._free:
+                self._running -= cost
+                self._count -= 1
+                self._free.notify_all()
 
 
 class _Relay:
@@ -434,7 +465,7 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     filter_stage(run, ws)
     threshold_stage(run, ws)
     ownership_stage(run, ws)
-    run.threads = bone_threads(ws, run.params.max_memory_gb)
+    run.threads, run.costs, run.budget = bone_schedule(ws, run.params.max_memory_gb)
     ws.prep.info["bone_threads"] = run.threads
     bones = run.each(ws.targets, run.stage("surfaces"),
                      lambda k, part: initial_surface_stage(run, ws, k, part))
@@ -546,21 +577,36 @@ def ownership_stage(run: _Run, ws: Workspace) -> None:
             coarseness=ws.prep.coarseness, band_mm=ws.band, progress=sub)
 
 
-def bone_threads(ws: Workspace, max_memory_gb: float) -> int:
-    """How many bones the per-bone stages work at once: one per CPU up to MAX_BONE_THREADS,
-    and no more than the memory estimate allows - the run's own (prepare.estimate_memory_bytes)
-    plus, per extra bone at once, the estimate's bytes per voxel over that bone's box (the
-    largest boxes)."""
-    n = min(os.cpu_count() or 1, MAX_BONE_THREADS, len(ws.targets))
-    if n <= 1:
-        return 1
-    boxes = sorted((int(np.prod([s.stop - s.start for s in sl]))
-                    for k, (sl, _) in ws.own.regions.items() if k in ws.targets), reverse=True)
-    base = float(ws.prep.info.get("estimated_memory_gb") or 0.0) * 1024 ** 3
-    while n > 1 and base + sum(boxes[:n - 1]) * _prepare.BYTES_PER_VOXEL \
-            > max_memory_gb * 1024 ** 3:
-        n -= 1
-    return n
+def bone_schedule(ws: Workspace, max_memory_gb: float) -> tuple:
+    """(threads, costs, budget) for the per-bone stages: one thread per CPU up to
+    MAX_BONE_THREADS; a bone's cost is the memory estimate's bytes per voxel over its box
+    (prepare.BYTES_PER_VOXEL, all included, so an upper bound); the budget is what
+    ``max_memory_gb`` leaves beside what the process holds now. Bones run at once only while
+    their costs fit the budget (one always runs)."""
+    threads = min(os.cpu_count() or 1, MAX_BONE_THREADS, len(ws.targets))
+    costs = {k: float(np.prod([s.stop - s.start for s in sl])) * _prepare.BYTES_PER_VOXEL
+             for k, (sl, _) in ws.own.regions.items() if k in ws.targets}
+    held = _held_bytes()
+    if held is None:  # no measure of the process: the run's own estimate
+        held = float(ws.prep.info.get("estimated_memory_gb") or 0.0) * 1024 ** 3
+    return max(threads, 1), costs, max_memory_gb * 1024 ** 3 - held
+
+
+def _held_bytes() -> Optional[float]:
+    """The process's resident memory (bytes) now (Linux) or its peak so far (other Unix);
+    None where neither is available."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return float(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError, AttributeError):
+        pass
+    try:
+        import resource
+
+        peak = float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+        return peak if sys.platform == "darwin" else peak * 1024.0  # bytes on macOS, KB else
+    except (ImportError, OSError):
+        return None
 
 
 def initial_surface_stage(run: _Run, ws: Workspace, k: int, progress: Progress) -> BoneWork:

@@ -104,15 +104,39 @@ def test_a_failing_bone_fails_the_run_or_only_itself(keep_going):
         assert run.each([1, 2, 3], run.progress, lambda k, part: -k) == {1: -1, 3: -3}
 
 
-def test_bone_threads_fit_the_memory_limit(monkeypatch):
+@pytest.mark.parametrize("budget, expected", [(2.5, 2), (1.5, 1), (-1.0, 1)])
+def test_bones_at_once_fit_the_memory_budget(budget, expected):
+    """Costs 1 per bone: a budget of 2.5 lets two run at once, 1.5 one (and a budget that
+    nothing fits still runs every bone, one at a time)."""
+    lock = threading.Lock()
+    running, most = [0], [0]
+
+    def work(k, part):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        threading.Event().wait(0.1)
+        with lock:
+            running[0] -= 1
+        return k
+
+    run = _run(2)
+    run.costs = {k: 1.0 for k in range(1, 6)}
+    run.budget = budget
+    assert run.each([1, 2, 3, 4, 5], run.progress, work) == {k: k for k in range(1, 6)}
+    assert most[0] == expected
+
+
+def test_bone_schedule_charges_each_bone_its_box(monkeypatch):
     monkeypatch.setattr(pipeline.os, "cpu_count", lambda: 8)
-    box = (slice(0, 100), slice(0, 100), slice(0, 100))  # 1e6 voxels a bone
-    own = types.SimpleNamespace(regions={k: (box, None) for k in (1, 2, 3, 4, 5)})
-    prep = types.SimpleNamespace(targets=[1, 2, 3, 4, 5], info={"estimated_memory_gb": 1.0})
+    box = (slice(0, 100), slice(0, 100), slice(0, 50))  # 5e5 voxels
+    own = types.SimpleNamespace(regions={k: (box, None) for k in (1, 2, 3)})
+    prep = types.SimpleNamespace(targets=[1, 3], info={"estimated_memory_gb": 1.0})
     ws = types.SimpleNamespace(own=own, prep=prep, targets=prep.targets)
-    per_bone = 1e6 * pipeline._prepare.BYTES_PER_VOXEL / 1024 ** 3
-    assert pipeline.bone_threads(ws, 100.0) == pipeline.MAX_BONE_THREADS
-    assert pipeline.bone_threads(ws, 1.0 + per_bone * 1.5) == 2
-    assert pipeline.bone_threads(ws, 1.0) == 1
-    prep.targets = ws.targets = [1]
-    assert pipeline.bone_threads(ws, 100.0) == 1
+    threads, costs, budget = pipeline.bone_schedule(ws, 4.0)
+    assert threads == 2  # two targets
+    assert costs == {1: 5e5 * pipeline._prepare.BYTES_PER_VOXEL,
+                     3: 5e5 * pipeline._prepare.BYTES_PER_VOXEL}
+    held = pipeline._held_bytes()
+    assert held is not None and held > 10e6  # this process holds some memory
+    assert budget == pytest.approx(4.0 * 1024 ** 3 - held, rel=0.05)
