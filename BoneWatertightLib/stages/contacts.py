@@ -92,10 +92,15 @@ def territories(surfaces: dict, fixed: dict, shape: tuple, spacing: float) -> di
             union |= c
         box = bbox_slices(union, pad)
         own = signed_distance(mine, box, spacing)
-        nearest = np.full(own.shape, FAR, np.float32)
+        # The nearest other bone's signed distance, as that of the near bones' union: the
+        # same outside them (the distance to the nearest one); inside one, the depth in the
+        # union (deeper only where two others touch, far inside them). One transform instead
+        # of one per neighbour.
+        near_others = np.zeros(mine.shape, bool)
         for m, c in zip(others, close):
             if c.any():
-                nearest = np.minimum(nearest, signed_distance(m, box, spacing))
+                near_others |= m
+        nearest = signed_distance(near_others, box, spacing)
         start = np.array([w.start + b.start for w, b in zip(win, box)][::-1], dtype=np.float64)
         out[k] = (start * spacing, ((own - nearest) * 0.5).astype(np.float32))
     return out
