@@ -341,8 +341,9 @@ class _Run:
                         f.exception() is not None and not isinstance(f.exception(), CancelledError)
                         for f in finished):
                     relay.cancel()  # the run fails with this error: stop the other bones
-                fraction, message = relay.state()
-                if cancelled is None:
+                for fraction, message in relay.events():
+                    if cancelled is not None:
+                        break
                     try:
                         # the keys skipped (failed before) count as done
                         progress((slots - len(todo) + fraction * len(todo)) / slots, message)
@@ -388,30 +389,37 @@ class _Budget:
 
 
 class _Relay:
-    """Progress of bones worked at once: each worker's callback records its bone's fraction
-    and message (and says stop once :meth:`cancel` was called); the calling thread reads the
-    mean fraction and the latest message."""
+    """Progress of bones worked at once: each worker's callback queues its bone's fraction
+    and message (and says stop once :meth:`cancel` was called); the calling thread takes
+    them in order (:meth:`events`), each with the mean fraction over the bones by then."""
 
     def __init__(self, n: int):
         import threading
 
         self._lock = threading.Lock()
         self._fractions = [0.0] * n
+        self._queue: list = []
         self._message = ""
         self._stop = threading.Event()
 
     def callback(self, j: int):
         def report(fraction: float, message: str = ""):
             with self._lock:
-                self._fractions[j] = max(self._fractions[j], fraction)
-                if message:
-                    self._message = message
+                self._queue.append((j, fraction, message))
             return not self._stop.is_set()
         return report
 
-    def state(self) -> tuple:
+    def events(self) -> list:
+        """[(mean fraction, message)] of the reports since the last call, in order; when
+        there were none, the current state once (so the caller still hears from the run)."""
         with self._lock:
-            return sum(self._fractions) / len(self._fractions), self._message
+            queue, self._queue = self._queue, []
+        out = []
+        for j, fraction, message in queue:
+            self._fractions[j] = max(self._fractions[j], fraction)
+            self._message = message or self._message
+            out.append((sum(self._fractions) / len(self._fractions), self._message))
+        return out or [(sum(self._fractions) / len(self._fractions), self._message)]
 
     def cancel(self) -> None:
         self._stop.set()

@@ -56,7 +56,10 @@ def test_the_callers_callback_runs_on_the_calling_thread_and_ends_at_one():
     fractions = [f for _, f, _ in calls]
     assert fractions == sorted(fractions)  # never goes back
     assert fractions[-1] == pytest.approx(1.0)
-    assert any("bone" in m for _, _, m in calls)
+    # every message of every bone reaches the callback, each bone's in its order
+    for k in (1, 2, 3, 4):
+        mine = [m for _, _, m in calls if m.startswith(f"bone {k} ")]
+        assert mine == [f"bone {k} step {i}" for i in range(5)]
 
 
 def test_cancel_stops_the_bones_still_running():
