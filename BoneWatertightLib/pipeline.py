@@ -1260,7 +1260,7 @@ def _crossing_pairs(surfaces: dict) -> list:
     keys = list(surfaces)
     return [(a, b) for i, a in enumerate(keys) for b in keys[i + 1:]
             if _contacts.pair_report(surfaces[a][0], surfaces[a][1], surfaces[b][0],
-                                     surfaces[b][1])["crossing_face_pairs"]]
+                                     surfaces[b][1], crossing_only=True)["crossing_face_pairs"]]
 
 
 def _component_volumes(vertices, faces) -> list:

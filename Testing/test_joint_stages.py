@@ -203,6 +203,13 @@ def test_pair_report_of_separate_spheres():
     rep = contacts.pair_report(a[0], a[1], b[0], b[1])
     assert rep["crossing_face_pairs"] == 0 and rep["a_inside_b"] == 0 and rep["b_inside_a"] == 0
     assert rep["min_gap_mm"] == pytest.approx(0.5, abs=0.15)
+    # crossing_only: the same crossing count, nothing else measured
+    c = _grid_sphere(5.0, (0.0, 0.0, 8.0))
+    full = contacts.pair_report(a[0], a[1], c[0], c[1])
+    quick = contacts.pair_report(a[0], a[1], c[0], c[1], crossing_only=True)
+    assert full["crossing_face_pairs"] > 0
+    assert quick["crossing_face_pairs"] == full["crossing_face_pairs"]
+    assert quick["min_gap_mm"] is None and quick["a_inside_b"] == 0
 
 
 # ---------------------------------------------------------------------------------- plausibility

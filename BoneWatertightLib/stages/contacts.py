@@ -294,13 +294,13 @@ def _faces_meeting(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray)
     return f[keep]
 
 
-def pair_report(va, fa, vb, fb) -> dict:
+def pair_report(va, fa, vb, fb, crossing_only: bool = False) -> dict:
     """Exact check of two surfaces (vertices in any common frame, mm).
 
     Returns ``crossing_face_pairs`` (faces of one crossing faces of the other), ``a_inside_b``
     / ``b_inside_a`` (vertices of one inside the other), ``min_gap_mm`` (smallest distance of a
     vertex of one to the other surface) and ``contact_area_mm2`` (area of a's faces within
-    1 mm of b)."""
+    1 mm of b). With ``crossing_only`` only the first is measured (the others stay 0 / None)."""
     import vtk
 
     va = np.asarray(va, dtype=np.float64)
@@ -322,6 +322,8 @@ def pair_report(va, fa, vb, fb) -> dict:
         if len(pairs):
             out["crossing_face_pairs"] = int(((pairs[:, 0] < len(sub_a))
                                               != (pairs[:, 1] < len(sub_a))).sum())
+    if crossing_only:
+        return out
 
     def distances(points, v, f):
         loc = vtk.vtkCellLocator()
