@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Optional, Sequence
@@ -366,8 +367,6 @@ class _Budget:
     """Bones start only while the costs of those running fit the budget (one always may)."""
 
     def __init__(self, budget: float):
-        import threading
-
         self._budget = budget
         self._running = 0.0
         self._count = 0
@@ -394,8 +393,6 @@ class _Relay:
     them in order (:meth:`events`), each with the mean fraction over the bones by then."""
 
     def __init__(self, n: int):
-        import threading
-
         self._lock = threading.Lock()
         self._fractions = [0.0] * n
         self._queue: list = []
