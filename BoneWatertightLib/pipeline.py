@@ -891,8 +891,9 @@ def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, m
     cross get more passes with a wider margin, and a sub-voxel sliver left after those is
     moved apart exactly. Both are noted in ``fallbacks`` ({key: FallbackLog}; ``names``:
     {key: name}). Returns the passes' records."""
+    cache = {}
     history = _contacts.resolve_contacts(surfaces, fixed, shape, d, min_gap,
-                                         progress=progress.stage(0.0, 0.6))
+                                         progress=progress.stage(0.0, 0.6), cache=cache)
     for extra in range(1, CONTACT_RETRIES + 1):
         crossing = _crossing_pairs(surfaces)
         if not crossing:
@@ -903,13 +904,10 @@ def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, m
                 fallbacks[k].add("contacts", "the surfaces still crossed after the contact "
                                  "passes: more passes with a wider margin", 1, "passes",
                                  f"with {names[other]}")
-        others = dict(fixed)
-        for k in surfaces:
-            if k not in involved:
-                others[f"bone{k}"] = _contacts.voxelize(surfaces[k][0], surfaces[k][1], shape, d)
-        history += _contacts.resolve_contacts({k: surfaces[k] for k in involved}, others, shape,
-                                              d, min_gap + extra * d,
-                                              progress=progress.stage(0.6, 1.0))
+        # The other bones hold their place (their voxelised surfaces are cached).
+        history += _contacts.resolve_contacts(surfaces, fixed, shape, d, min_gap + extra * d,
+                                              progress=progress.stage(0.6, 1.0),
+                                              active=involved, cache=cache)
     else:
         # Still crossing after the field passes: a sub-voxel sliver; moved apart exactly.
         for a, b in _crossing_pairs(surfaces):
@@ -1037,7 +1035,9 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
         owned=own.owner[box] == k,
         unsupported=None if own.unsupported is None else own.unsupported[box],
         unsupported_pieces=len(own.info.get("unsupported", {}).get(k, [])),
-        unlabelled=None if own.merged is None else own.merged[box] & (own.owner[box] == k))
+        unlabelled=None if own.merged is None else own.merged[box] & (own.owner[box] == k),
+        others_owned=(own.owner[box] > 0) & (own.owner[box] != k),
+        contact_mm=float(own.info.get("contact_zone_mm", 0.0)))
     for cc in own.contacts:
         if cc["a"] == k and cc["b"] == own.other:
             plaus.unlabelled_contact_mm2 = float(cc["contact_area_mm2"])

@@ -179,7 +179,7 @@ def test_two_bones_one_model_each_in_ras_with_segments_written_back_without_over
     assert lines[1].startswith(f"A: {len(a)} vertices") and "checks passed" in lines[1] and "plausible" in lines[1]
     assert lines[2].startswith(f"B: {len(b)} vertices")
     assert lines[3].startswith("A / B: smallest gap") and "0 crossing face pairs" in lines[3]
-    assert len(lines) == 4 and out.warnings == []
+    assert len(lines) == 4 and out.warnings == [], (lines, out.warnings)
     fractions = [f for f, _ in calls]
     assert fractions == sorted(fractions) and fractions[-1] == pytest.approx(1.0)
     assert [m for _, m in calls][:2] == ["Reading the CT volume", "Reading the segments"]

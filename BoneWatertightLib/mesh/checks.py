@@ -362,15 +362,20 @@ NEAR_FACES_FRACTION = 0.25
 def _near_faces(vertices: np.ndarray, faces: np.ndarray, only: np.ndarray) -> np.ndarray:
     """Bool per face: its bounding box may meet the box of a face of ``only`` (a centroid
     lies in its box, so two boxes that meet have centroids at most their two diagonals
-    apart)."""
-    from scipy.spatial import cKDTree
-
+    apart: on cells of that size, in the same or a neighbouring cell)."""
     tri = vertices[faces]
     centroid = tri.mean(axis=1)
     diag = np.linalg.norm(tri.max(axis=1) - tri.min(axis=1), axis=1)
     reach = 2.0 * float(diag.max()) * (1.0 + 1e-6) + 1e-9 * (1.0 + float(np.abs(tri).max()))
-    dist, _ = cKDTree(centroid[only]).query(centroid, k=1, distance_upper_bound=reach)
-    return np.isfinite(dist) | only
+    cell = np.floor((centroid - centroid.min(axis=0)) / reach).astype(np.int64)
+    dims = cell.max(axis=0) + 3  # a cell of margin on each side
+    cell += 1
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    marked = np.unique(key[only])
+    offsets = np.array([(a * dims[1] + b) * dims[2] + c
+                        for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)])
+    marked = np.unique((marked[:, None] + offsets[None, :]).ravel())
+    return np.isin(key, marked) | only
 
 
 def _candidate_pairs(lo: np.ndarray, hi: np.ndarray):

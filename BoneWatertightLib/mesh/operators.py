@@ -146,11 +146,14 @@ def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int
         Faces still bad when giving up (0 when ``ok``).
     """
     new = new.copy()
-    fn_before = face_normals(old, faces)
+    # Only faces with a moved vertex can flip (the back-off only shrinks that set).
+    sub = np.flatnonzero(np.any(new != old, axis=1)[faces].any(axis=1))
+    fn_before = face_normals(old, faces[sub])
     bad_faces = 0
     ring = 0
     for r in range(rounds + BACKOFF_GROW_ROUNDS):
-        bad = np.einsum("ij,ij->i", fn_before, face_normals(new, faces)) < 0.0
+        bad = np.zeros(len(faces), bool)
+        bad[sub] = np.einsum("ij,ij->i", fn_before, face_normals(new, faces[sub])) < 0.0
         if not bad.any():
             if not intersections:
                 return new, True, 0

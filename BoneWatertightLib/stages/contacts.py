@@ -59,21 +59,33 @@ def signed_distance(mask: np.ndarray, box: tuple, spacing: float) -> np.ndarray:
     return (signed_distance_map(sub) * spacing).astype(np.float32)
 
 
-def territories(surfaces: dict, fixed: dict, shape: tuple, spacing: float) -> dict:
+def territories(surfaces: dict, fixed: dict, shape: tuple, spacing: float, *,
+                only=None, cache: dict | None = None) -> dict:
     """phi per reconstructed bone from ``surfaces`` ({key: (vertices, faces)} grid mm) and the
     owned voxels of the bones that are not reconstructed (``fixed``: {key: bool mask}).
 
     phi is computed only where another bone comes within SDF_PAD_MM (a box around the joint),
     so a long bone pays for its joints, not for its length; and each bone is worked in a window
-    around it, so n bones cost n windows, not n^2 whole grids. None: no other bone is near."""
-    masks = {k: _voxelize_local(v, f, shape, spacing) for k, (v, f) in surfaces.items()}
+    around it, so n bones cost n windows, not n^2 whole grids. None: no other bone is near.
+    ``only``: the keys whose phi is wanted (default: all of ``surfaces``). ``cache``: a dict
+    kept between calls; a surface whose vertex array is the same object as at the last call is
+    not voxelised again."""
+    masks = {}
+    for k, (v, f) in surfaces.items():
+        hit = cache.get(k) if cache is not None else None
+        if hit is not None and hit[0] is v:
+            masks[k] = hit[1]
+        else:
+            masks[k] = _voxelize_local(v, f, shape, spacing)
+            if cache is not None:
+                cache[k] = (v, masks[k])
     for k, m in fixed.items():
         if m is not None and m.any():
             box = bbox_slices(m, 0)
             masks[k] = (box, m[box])
     pad = int(np.ceil(SDF_PAD_MM / spacing)) + 2
     out = {}
-    for k in surfaces:
+    for k in (surfaces if only is None else only):
         box_k, sub_k = masks[k]
         if not sub_k.any():
             out[k] = None
@@ -164,7 +176,8 @@ def _ring_patch(adjacency, seeds: np.ndarray, rings: int) -> np.ndarray:
 
 
 def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, gap: float,
-            rounds: int = ENFORCE_ROUNDS, pinned: np.ndarray | None = None):
+            rounds: int = ENFORCE_ROUNDS, pinned: np.ndarray | None = None,
+            operators: dict | None = None):
     """Move vertices with phi > -gap / 2 back along -grad phi; returns (vertices, number still
     beyond, number moved, number of moves discarded).
 
@@ -172,7 +185,9 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
     around them (the rest of the surface is fixed), so the neighbourhood follows smoothly; the
     rounds are checked for flipped faces, the result once exactly for self-intersections.
     When that check cannot be met the input is kept: every move is discarded (the fourth
-    value counts them). ``pinned`` ((n,) bool): vertices that never move (a cap's)."""
+    value counts them). ``pinned`` ((n,) bool): vertices that never move (a cap's).
+    ``operators``: a dict kept between calls on the same ``faces`` (the mesh's Laplacian
+    matrices, built once)."""
     if phi_entry is None:
         return vertices, 0, 0, 0
     from scipy.sparse.linalg import spsolve
@@ -186,9 +201,14 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
     if not ((value > target) & free).any():
         return vertices, 0, 0, 0
     grads = [ndimage.sobel(phi, axis=a) / (8.0 * spacing) for a in (2, 1, 0)]
-    L = laplacian(len(v), faces)
-    LtL = (L.T @ L).tocsr()
-    adjacency = (abs(L) > 0).astype(np.float64).tocsr()
+    if operators is None or operators.get("faces") is not faces:
+        L = laplacian(len(v), faces)
+        built = {"faces": faces, "LtL": (L.T @ L).tocsr(),
+                 "adjacency": (abs(L) > 0).astype(np.float64).tocsr()}
+        if operators is not None:
+            operators.update(built)
+        operators = built
+    LtL, adjacency = operators["LtL"], operators["adjacency"]
     moved = np.zeros(len(v), bool)
     stiffness = ENFORCE_SMOOTHNESS
     for r in range(rounds):
@@ -226,14 +246,27 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
 
 def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, min_gap: float,
                      passes: int = CONTACT_PASSES, progress=None,
-                     pinned: dict | None = None) -> list:
+                     pinned: dict | None = None, active=None,
+                     cache: dict | None = None) -> list:
     """Keep the surfaces (dict key -> [vertices, faces], updated in place) apart by min_gap.
 
-    ``pinned``: key -> (n,) bool of vertices that never move. Returns one record per pass:
-    {key: (moved, still beyond, moves discarded by the self-intersection check)}."""
+    ``pinned``: key -> (n,) bool of vertices that never move. ``active``: the keys that may
+    move (default all; the others only hold their place). ``cache``: a dict kept between
+    calls on the same surfaces (voxelised surfaces, Laplacians). Returns one record per pass:
+    {key: (moved, still beyond, moves discarded by the self-intersection check)}.
+
+    A pass after the first works only on the bones that were still beyond their midway surface:
+    the others stay within theirs, since the moves only take surfaces back into their own
+    side, which moves every midway surface away from the bones that did not move. (The exact
+    crossing test after the passes decides in any case.)"""
     history = []
+    cache = {} if cache is None else cache
+    masks = cache.setdefault("masks", {})
+    operators = cache.setdefault("operators", {})
+    active = list(surfaces) if active is None else list(active)
     for p in range(passes):
-        phis = territories({k: (v, f) for k, (v, f) in surfaces.items()}, fixed, shape, spacing)
+        phis = territories({k: (v, f) for k, (v, f) in surfaces.items()}, fixed, shape, spacing,
+                           only=active, cache=masks)
         record = {}
         for k, entry in phis.items():
             if entry is None:
@@ -241,13 +274,15 @@ def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, 
             v, f = surfaces[k]
             # half a voxel more: the fields are voxelised
             v2, beyond, moved, discarded = enforce(v, f, entry, spacing, min_gap + 0.5 * spacing,
-                                                   pinned=(pinned or {}).get(k))
+                                                   pinned=(pinned or {}).get(k),
+                                                   operators=operators.setdefault(k, {}))
             surfaces[k][0] = v2
             record[k] = (moved, beyond, discarded)
         history.append(record)
         if progress:
             progress((p + 1) / passes, f"joint gaps, pass {p + 1}")
-        if all(rec[1] == 0 for rec in record.values()):
+        active = [k for k, rec in record.items() if rec[1] > 0]
+        if not active:
             break
     return history
 
