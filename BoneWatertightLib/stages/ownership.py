@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from .threshold import SIX, bbox_slices, coarse_distance, segment_region
+from .threshold import SIX, bbox_slices, segment_region
 from ..mesh.distance import distance_inside, distance_outside
 
 # A core is deeper than max(CORE_MIN_MM, coarseness) inside its label, but at most this
@@ -316,11 +316,12 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     if progress:
         progress(0.8, "contacts between bones")
     faces = _interfaces(ws, fg, ct, spacing, quantum, radius)
+    boxes = ndimage.find_objects(ws)
     merged = _merged_pieces(faces, ws, labels, n, range(other, other + n_pieces), spacing,
                             reach_mm=band_mm + MERGE_REACH_COARSENESS * coarseness
-                            + MERGE_REACH_MM)
+                            + MERGE_REACH_MM, boxes=boxes)
     ws[joint_space] = 0
-    owner = _owners(ws, seg.regions, markers, labels, merged)
+    owner = _owners(ws, seg.regions, markers, labels, merged, boxes)
     merged_ids = {p for p, _, _, _ in merged}
     owner[(ws >= other) & ~np.isin(ws, list(merged_ids)) & (owner == 0)] = other
     taken = np.isin(ws, list(merged_ids)) & (owner > 0) if merged_ids else None
@@ -434,13 +435,14 @@ def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float) -
 
 
 def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
-                   reach_mm: float) -> list:
+                   reach_mm: float, boxes: list) -> list:
     """Unlabelled pieces meeting a bone without a valley: the bone's own, missed by the
     segment - only what lies within ``reach_mm`` of its label (a whole neighbouring bone
-    without a visible joint space does not). [(piece, bone, valley fraction, contact mm^2)]"""
+    without a visible joint space does not). ``boxes``: ``ndimage.find_objects(ws)``.
+    [(piece, bone, valley fraction, contact mm^2)]"""
     area = spacing ** 2
     merged = []
-    reach_of = {}
+    pad = int(np.ceil(reach_mm / spacing)) + 1
     for piece in pieces:
         best = None
         for (a, b), (tot, vis) in faces.items():
@@ -448,52 +450,56 @@ def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
                 continue
             if best is None or tot - vis > best[1] - best[2]:
                 best = (a, tot, vis)
-        if best is None:
+        if best is None or piece > len(boxes) or boxes[piece - 1] is None:
             continue
         a, tot, vis = best
         if vis / tot >= MERGE_MAX_VALLEY_FRACTION or tot * area < MERGE_MIN_AREA_MM2:
             continue
-        if a not in reach_of:
-            reach_of[a] = coarse_distance(labels == a, spacing)
-        dist, f = reach_of[a]
-        zi, yi, xi = np.nonzero(ws == piece)
-        far = dist[zi // f, yi // f, xi // f].max()
+        # The label within reach of the piece lies in its box grown by the reach: the
+        # distance measured there is exact up to the reach, and beyond it only larger.
+        box = tuple(slice(max(0, b.start - pad), min(size, b.stop + pad))
+                    for b, size in zip(boxes[piece - 1], ws.shape))
+        lab_a = labels[box] == a
+        if not lab_a.any():
+            continue
+        far = (distance_outside(lab_a) * spacing)[ws[box] == piece].max()
         if far <= reach_mm:
             merged.append((piece, a, vis / tot, tot * area))
     return merged
 
 
-def _owners(ws, regions: dict, markers, labels, merged: list) -> np.ndarray:
+def _owners(ws, regions: dict, markers, labels, merged: list, boxes: list) -> np.ndarray:
     """Owner (uint16 label index, 0 none) of each voxel: label i's basin within its region
     (with the pieces merged into it), its fragments kept when they hold a marker of i or lie
-    mostly in the label."""
-    shape = ws.shape
+    mostly in the label. ``boxes``: ``ndimage.find_objects(ws)`` (or boxes holding them).
+    Each label is worked on the box of its region and its merged pieces."""
     grow: dict = {}
     for piece, a, _, _ in merged:
         grow.setdefault(a, []).append(piece)
-    owner = np.zeros(shape, np.uint16)
+    owner = np.zeros(ws.shape, np.uint16)
     for i, (sl, reg) in regions.items():
-        own = ws == i
-        if i in grow:
-            own |= np.isin(ws, grow[i])
-            own[sl] &= reg | np.isin(ws[sl], grow[i])
-            outside = np.ones(shape, bool)
-            outside[sl] = False
-            own &= ~outside | np.isin(ws, grow[i])
-        else:
-            inside = np.zeros(shape, bool)
-            inside[sl] = reg
-            own &= inside
+        pieces = grow.get(i, [])
+        box = sl
+        for p in pieces:
+            if p <= len(boxes) and boxes[p - 1] is not None:
+                box = tuple(slice(min(a.start, b.start), max(a.stop, b.stop))
+                            for a, b in zip(box, boxes[p - 1]))
+        w = ws[box]
+        inner = tuple(slice(s.start - b.start, s.stop - b.start) for s, b in zip(sl, box))
+        own = np.zeros(w.shape, bool)
+        own[inner] = (w[inner] == i) & reg
+        if pieces:
+            own |= np.isin(w, pieces)
         lab_i, n_i = ndimage.label(own, structure=SIX)
         if n_i > 1:
             ok = np.zeros(n_i + 1, bool)
-            ok[np.unique(lab_i[(markers == i) & own])] = True
+            ok[np.unique(lab_i[(markers[box] == i) & own])] = True
             size = np.bincount(lab_i.ravel(), minlength=n_i + 1)
-            inlab = np.bincount(lab_i[labels == i], minlength=n_i + 1)
+            inlab = np.bincount(lab_i[labels[box] == i], minlength=n_i + 1)
             ok |= inlab >= FRAGMENT_IN_LABEL_FRACTION * size
             ok[0] = False
             own = ok[lab_i]
-        owner[own] = i
+        owner[box][own] = i
     return owner
 
 
