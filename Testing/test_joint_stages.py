@@ -197,6 +197,38 @@ def test_resolve_contacts_separates_overlapping_surfaces_by_the_gap():
     assert np.allclose(surfaces[1][0][far], a[0][far], atol=0.05)
 
 
+def test_resolve_contacts_moves_only_the_active_bones_and_reuses_its_cache(monkeypatch):
+    """``active``: the other surfaces hold their place (the retry of a crossing pair beside
+    bones that are done); a later pass works only on the bones still beyond their midway
+    surface, and a surface that did not move is not voxelised again."""
+    shape = (40, 40, 75)
+    d = 1.0
+    a = list(_grid_sphere(8.0, (20.0, 20.0, 21.0)))
+    b = list(_grid_sphere(8.0, (20.0, 20.0, 36.0)))  # 1 mm overlap with a
+    c = list(_grid_sphere(6.0, (20.0, 20.0, 58.0)))  # 8 mm from b: in no contact pass
+    surfaces = {1: [a[0], a[1]], 2: [b[0], b[1]], 3: [c[0], c[1]]}
+    calls = []
+    real = contacts._voxelize_local
+    monkeypatch.setattr(contacts, "_voxelize_local",
+                        lambda v, f, sh, sp: calls.append(len(v)) or real(v, f, sh, sp))
+    history = contacts.resolve_contacts(surfaces, {}, shape, d, 0.3, passes=4, active=[1])
+    assert surfaces[2][0] is b[0] and surfaces[3][0] is c[0]  # held their place
+    assert all(set(rec) <= {1} for rec in history)
+    after = contacts.pair_report(surfaces[1][0], a[1], surfaces[2][0], b[1])
+    assert after["crossing_face_pairs"] == 0 and after["a_inside_b"] == 0
+    assert after["min_gap_mm"] >= 0.3 - 1e-6
+    # b and c voxelised once; a once per pass (it moves in each pass it is in)
+    assert len(calls) == 2 + len(history)
+    # calls sharing a cache voxelise again only the surfaces that moved since (those moved in
+    # the last pass of the call before)
+    cache = {}
+    history = contacts.resolve_contacts(surfaces, {}, shape, d, 0.3, passes=2, cache=cache)
+    moved = [k for k, rec in history[-1].items() if rec[0] > 0]
+    n = len(calls)
+    contacts.resolve_contacts(surfaces, {}, shape, d, 0.3, passes=1, cache=cache)
+    assert len(calls) - n == len(moved)
+
+
 def test_pair_report_of_separate_spheres():
     a = _grid_sphere(5.0, (0.0, 0.0, 0.0))
     b = _grid_sphere(5.0, (0.0, 0.0, 10.5))
