@@ -475,18 +475,19 @@ def test_contact_with_unlabelled_bone_without_a_joint_space_fails_or_warns():
 
 
 def test_losing_part_of_what_the_segment_clearly_covers_warns():
-    """A surface inside the segment's core over more than 5 % of it is returned with a warning
+    """A surface inside the segment's core (deeper than c/2 + 1 mm) over more than 5 % of it is
+    returned with a warning
     that gives both volumes (a thin part lost, or a generous label: the user must look); a few %
     (a 3 mm label's stair steps) says nothing; beyond 15 % the run fails."""
     def gated(missing):
         p = plausibility.Plausibility(segment_ml=2.2, surface_ml=1.35, volume_ratio=0.614,
-                                      missing_fraction=missing)
+                                      missing_fraction=missing, core_missing_fraction=missing)
         return plausibility.gate(p, coarseness=3.0, band_mm=3.0, name="T11")
 
     p = gated(0.112)
     assert not p.problems and len(p.warnings) == 1
     assert p.warnings[0].startswith("T11: 11 % of what the segment clearly covers (more than "
-                                    "1.5 mm inside it) is outside the surface")
+                                    "2.5 mm inside it) is outside the surface")
     assert "1.4 ml against the segment's 2.2 ml (61 %)" in p.warnings[0]
     assert not gated(0.03).warnings
     p = gated(0.2)
