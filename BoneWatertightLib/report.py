@@ -346,6 +346,11 @@ def shape_text(pipeline) -> str:
         n = plaus.unsupported_pieces
         parts.append(f"left out {n} part{'s' if n > 1 else ''} of the segment that the CT shows "
                      f"as soft tissue ({plaus.unsupported_segment_ml:.1f} ml)")
+    if plaus is not None and getattr(plaus, "untouched_pieces", 0):
+        n = plaus.untouched_pieces
+        parts.append(f"left out {n} island{'s' if n > 1 else ''} of the segment that the surface "
+                     f"does not reach and the CT does not show as this bone "
+                     f"({plaus.untouched_segment_ml:.2f} ml)")
     evidence = (getattr(pipeline, "evidence", None) or {}).get("fraction")
     if evidence:
         shown = [f"{name} {100 * f:.0f} %" for name, f in evidence.items()

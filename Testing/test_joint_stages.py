@@ -288,6 +288,27 @@ def test_growing_into_a_neighbour_fails():
     assert "outside the segment" in text and "core" in text
 
 
+def test_islands_the_surface_does_not_reach_are_left_out_and_reported():
+    """Two small balls of the segment in the soft tissue, away from the bone: not missing bone
+    (the surface passes), counted with their volume, and named in the summary line."""
+    from types import SimpleNamespace
+
+    from BoneWatertightLib.report import shape_text
+
+    shape = (40, 40, 70)
+    label = _ball(shape, (20, 20, 20), 10)
+    islands = _ball(shape, (50, 20, 20), 3) | _ball(shape, (60, 30, 25), 2)
+    p = _measure(_ball(shape, (20, 20, 20), 10.5), label | islands)
+    assert p.ok, p.problems
+    assert p.untouched_pieces == 2
+    assert p.untouched_segment_ml == pytest.approx(islands.sum() / 1000.0, rel=0.05)
+    text = shape_text(SimpleNamespace(plausibility=p))
+    assert "left out 2 islands of the segment that the surface does not reach" in text
+    assert f"({p.untouched_segment_ml:.2f} ml)" in text
+    p = _measure(_ball(shape, (20, 20, 20), 10.5), label)
+    assert p.untouched_pieces == 0 and "island" not in shape_text(SimpleNamespace(plausibility=p))
+
+
 def test_no_ct_edge_fails():
     shape = (40, 40, 40)
     label = _ball(shape, (20, 20, 20), 10)

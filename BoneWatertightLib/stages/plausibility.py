@@ -115,6 +115,7 @@ class Plausibility:
     neighbour_core_overlap: float = 0.0
     edge_support: float = 1.0
     untouched_segment_ml: float = 0.0
+    untouched_pieces: int = 0
     untouched_bone_ml: float = 0.0
     unsupported_segment_ml: float = 0.0
     unsupported_pieces: int = 0
@@ -247,6 +248,7 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         neighbour_core_overlap=float((inside & neighbour_cores).sum() / max(in_n, 1)),
         edge_support=float(edge_support),
         untouched_segment_ml=float(islands.sum() * voxel / 1000.0),
+        untouched_pieces=int(len(np.unique(pieces[islands]))),
         untouched_bone_ml=float(left_out.sum() * voxel / 1000.0),
         unsupported_segment_ml=unsupported_ml, unsupported_pieces=int(unsupported_pieces),
         unlabelled_bone_ml=unlabelled_ml)
