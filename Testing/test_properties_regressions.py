@@ -187,6 +187,13 @@ def test_auto_spacing_is_the_finest_measured_step_that_keeps_the_grid_small():
     assert prepare.auto_spacing(np.array([400.0, 400.0, 900.0])) == hi
     # the estimate at the automatic spacing of a femur stays within the 2 GB
     assert prepare.estimate_memory_bytes(femur, d) <= 2 * 1024 ** 3
+    # never finer than a quarter of the CT's coarsest spacing (a 3 mm CT: 0.75 mm), never
+    # coarser than the range for that reason alone; fine CTs keep the rule above
+    assert prepare.auto_spacing(vertebra, ct_spacing=(3.0, 3.0, 3.0)) == 0.75
+    assert prepare.auto_spacing(vertebra, ct_spacing=(0.7, 0.7, 2.5)) == pytest.approx(0.62)
+    assert prepare.auto_spacing(vertebra, ct_spacing=(5.0, 5.0, 8.0)) == hi
+    assert prepare.auto_spacing(vertebra, ct_spacing=(0.6, 0.6, 1.0)) == lo
+    assert prepare.auto_spacing(femur, ct_spacing=(0.6, 0.6, 1.0)) == d
 
 
 def test_auto_spacing_always_fits_the_memory_limit_it_checks():
