@@ -338,4 +338,3 @@ def test_a_bone_cut_into_two_pieces_by_the_image_boundary_is_refused_clearly():
     with pytest.raises(errors.PlausibilityError, match=r"separate piece of bone that the surface "
                                                       r"does not reach"):
         reconstruct(ct, mask, Parameters(spacing=1.0, iterations=2, views=6))
-

@@ -323,9 +323,11 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     ws[joint_space] = 0
     owner = _owners(ws, seg.regions, markers, labels, merged, boxes)
     merged_ids = {p for p, _, _, _ in merged}
-    owner[(ws >= other) & ~np.isin(ws, list(merged_ids)) & (owner == 0)] = other
-    taken = np.isin(ws, list(merged_ids)) & (owner > 0) if merged_ids else None
-    merged_ml = {p: float((ws == p).sum() * spacing ** 3 / 1000.0) for p in merged_ids}
+    in_merged = np.isin(ws, list(merged_ids))
+    owner[(ws >= other) & ~in_merged & (owner == 0)] = other
+    taken = in_merged & (owner > 0) if merged_ids else None
+    sizes = np.bincount(ws[in_merged], minlength=max(merged_ids, default=0) + 1)
+    merged_ml = {p: float(sizes[p] * spacing ** 3 / 1000.0) for p in merged_ids}
     contacts = _pair_contacts(faces, n, other, merged_ids, spacing ** 2)
     info = {"core_depth_mm": {int(k): float(v) for k, v in seg.core_depth.items()},
             "contact_zone_mm": r_contact, "valley_quantum_hu": quantum, "label_level_hu": t_low,

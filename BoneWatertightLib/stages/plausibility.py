@@ -330,7 +330,7 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str) -> Pl
     warn_exc = EXCURSION_WARN_COARSENESS * coarseness + EXCURSION_WARN_MM
     p.bounds["p95_excursion_warn_mm"] = warn_exc
     p.warnings = []
-    p.bounds["missing_fraction_warn"] = MISSING_WARN_FRACTION
+    p.bounds["core_missing_fraction_warn"] = MISSING_WARN_FRACTION
     if p.core_missing_fraction > MISSING_WARN_FRACTION and not problems:
         p.warnings.append(
             f"{name}: {100 * p.core_missing_fraction:.0f} % of what the segment clearly covers "
