@@ -1036,6 +1036,7 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
         unsupported=None if own.unsupported is None else own.unsupported[box],
         unsupported_pieces=len(own.info.get("unsupported", {}).get(k, [])),
         unlabelled=None if own.merged is None else own.merged[box] & (own.owner[box] == k),
+        added=None if own.added is None else own.added[box] & (own.owner[box] == k),
         others_owned=(own.owner[box] > 0) & (own.owner[box] != k),
         contact_mm=float(own.info.get("contact_zone_mm", 0.0)))
     for cc in own.contacts:

@@ -22,6 +22,11 @@ from typing import Optional
 import numpy as np
 
 
+# The summary line names the bone taken in beyond the segment from this volume (ml) on: below
+# it the pieces are a few stair steps of a coarse label.
+ADDED_SHOWN_ML = 0.05
+
+
 @dataclass
 class StageTimes:
     """Seconds spent in each pipeline stage (``total`` includes everything)."""
@@ -351,6 +356,9 @@ def shape_text(pipeline) -> str:
         parts.append(f"left out {n} island{'s' if n > 1 else ''} of the segment that the surface "
                      f"does not reach and the CT does not show as this bone "
                      f"({plaus.untouched_segment_ml:.2f} ml)")
+    if plaus is not None and getattr(plaus, "added_bone_ml", 0.0) >= ADDED_SHOWN_ML:
+        parts.append(f"took in {plaus.added_bone_ml:.2f} ml of bone beyond the segment that "
+                     "continues this bone without a joint space (the segment missed it)")
     evidence = (getattr(pipeline, "evidence", None) or {}).get("fraction")
     if evidence:
         shown = [f"{name} {100 * f:.0f} %" for name, f in evidence.items()

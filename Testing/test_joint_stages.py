@@ -171,6 +171,66 @@ def test_unlabelled_bone_beyond_a_joint_stays_a_neighbour():
     assert (row[31:54] != 1).all()  # never bone 1 across the joint space
 
 
+@pytest.mark.parametrize("neighbour", [False, True])
+def test_merged_bone_counts_as_fused_only_where_it_continues_into_unlabelled_bone(neighbour):
+    """A plate of bone 1 that its label leaves out (an AI label misses a thin blade) is merged
+    into bone 1 and is its own. The same plate continuing, without a joint space the CT
+    resolves, into a large unlabelled bone is a fragment of that neighbour fused with bone 1:
+    only then does the plausibility gate count it (``Ownership.merged``)."""
+    shape = (24, 24, 72)
+    ct = np.full(shape, 40.0, np.float32)
+    ct[4:20, 4:20, 5:31] = 1200.0
+    ct[6:18, 6:18, 7:29] = 300.0
+    ct[10:13, 4:20, 31:37] = 550.0  # the plate, beyond the label's region (label + 3 mm)
+    labels = np.zeros(shape, np.uint16)
+    labels[4:20, 4:20, 5:31] = 1
+    if neighbour:
+        # a shallow dip (not a joint space: less than two valley quanta), then a large bone
+        ct[10:13, 4:20, 37] = 380.0
+        ct[4:20, 4:20, 38:68] = 550.0
+    own = ownership.compute_ownership(ct, labels, 1, 1.0, h0=400.0, ht=200.0, theta_max=2500.0,
+                                      soft=40.0, contrast=1160.0, coarseness=1.0, band_mm=3.0)
+    plate = own.info["merged_unlabelled"]
+    assert len(plate) == 1 and plate[0]["into"] == 1
+    assert (own.owner[11, 12, 34:37] == 1).all()  # the plate is bone 1's either way
+    assert plate[0]["part_of_unlabelled_bone"] is neighbour
+    if neighbour:
+        assert own.merged is not None and own.merged[11, 12, 34:37].all()
+        assert (own.owner[11, 12, 40:66] == own.other).all()
+    else:
+        assert own.merged is None
+
+
+def test_merged_bone_behind_part_of_a_joint_space_counts_as_fused():
+    """A piece merged although its contact shows a joint space on a quarter of it (below the
+    merge bound) is a neighbour's, not bone the label missed: the gate counts it."""
+    shape = (24, 24, 72)
+    ct = np.full(shape, 40.0, np.float32)
+    ct[4:20, 4:20, 5:31] = 1200.0
+    ct[6:18, 6:18, 7:29] = 300.0
+    ct[10:13, 4:20, 31:37] = 550.0
+    ct[10:13, 4:8, 31:37] = 1200.0
+    ct[10:13, 4:8, 32] = 380.0  # a joint space across a quarter of the plate
+    labels = np.zeros(shape, np.uint16)
+    labels[4:20, 4:20, 5:31] = 1
+    own = ownership.compute_ownership(ct, labels, 1, 1.0, h0=400.0, ht=200.0, theta_max=2500.0,
+                                      soft=40.0, contrast=1160.0, coarseness=1.0, band_mm=3.0)
+    (piece,) = own.info["merged_unlabelled"]
+    assert ownership.OWN_MAX_VALLEY_FRACTION <= piece["valley_fraction"] \
+        < ownership.MERGE_MAX_VALLEY_FRACTION
+    assert piece["part_of_unlabelled_bone"] and own.merged is not None
+
+
+def test_foreign_pieces_are_the_merged_ones_connected_to_a_piece_not_merged():
+    # pieces 3..7: 3 and 4 merged and touching only each other (and bone 1); 5 merged and
+    # touching 6 (merged) which touches 7 (not merged)
+    faces = {(1, 3): (10, 0), (3, 4): (5, 0), (1, 5): (10, 0), (5, 6): (4, 0), (6, 7): (9, 0),
+             (1, 7): (2, 1)}
+    assert ownership._foreign_pieces(faces, {3, 4, 5, 6}, {7}) == {5, 6}
+    assert ownership._foreign_pieces(faces, {3, 4, 5, 6}, set()) == set()
+    assert ownership._foreign_pieces(faces, set(), {7}) == set()
+
+
 # ---------------------------------------------------------------------------------- contacts
 
 def _grid_sphere(radius, centre):
@@ -257,7 +317,7 @@ def _measure(inside, label, **kw):
     p = plausibility.measure(inside, verts, label, none, kw.pop("cores", none),
                              np.ones(label.shape, bool), 1.0,
                              volume_mm3=float(inside.sum()), coarseness=2.0, band_mm=3.0,
-                             edge_support=kw.pop("edge", 0.95))
+                             edge_support=kw.pop("edge", 0.95), **kw)
     return plausibility.gate(p, coarseness=2.0, band_mm=3.0, name="bone")
 
 
@@ -307,6 +367,29 @@ def test_islands_the_surface_does_not_reach_are_left_out_and_reported():
     assert f"({p.untouched_segment_ml:.2f} ml)" in text
     p = _measure(_ball(shape, (20, 20, 20), 10.5), label)
     assert p.untouched_pieces == 0 and "island" not in shape_text(SimpleNamespace(plausibility=p))
+
+
+def test_merged_bone_fails_as_fused_only_when_it_is_a_neighbours():
+    """Bone beyond the segment that the ownership merged: a neighbour's fragment (``unlabelled``)
+    fails the run above 3 % of the volume; the bone's own continuation (``added``) does not and
+    is named in the summary line."""
+    from types import SimpleNamespace
+
+    from BoneWatertightLib.report import shape_text
+
+    shape = (40, 40, 70)
+    label = _ball(shape, (20, 20, 20), 10)
+    surface = _ball(shape, (20, 20, 20), 10.5)
+    extra = _ball(shape, (20, 20, 20), 14) & ~surface
+    extra[:, :, :20] = False  # a shell 3.5 mm thick over half the bone, 2.2 ml
+    surface = surface | extra
+    fused = _measure(surface, label, unlabelled=extra)
+    assert not fused.ok and "fused with an unlabelled" in fused.problems[0]
+    own = _measure(surface, label, added=extra)
+    assert own.ok, own.problems
+    assert own.added_bone_ml == pytest.approx(extra.sum() / 1000.0)
+    assert f"took in {own.added_bone_ml:.2f} ml" in shape_text(SimpleNamespace(plausibility=own))
+    assert "took in" not in shape_text(SimpleNamespace(plausibility=fused))
 
 
 def test_no_ct_edge_fails():

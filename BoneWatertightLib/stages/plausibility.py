@@ -120,6 +120,9 @@ class Plausibility:
     unsupported_segment_ml: float = 0.0
     unsupported_pieces: int = 0
     unlabelled_bone_ml: float = 0.0
+    # Bone outside every segment that continues this bone (merged, see ownership step 4) and
+    # that the surface holds (ml): what the segment missed of it.
+    added_bone_ml: float = 0.0
     # Contact with bone no segment labels (mm^2), the share of it where a joint space is seen,
     # and the surface's area (mm^2).
     unlabelled_contact_mm2: float = 0.0
@@ -141,6 +144,7 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
             edge_support: float, owned: np.ndarray | None = None,
             unsupported: np.ndarray | None = None, unsupported_pieces: int = 0,
             unlabelled: np.ndarray | None = None,
+            added: np.ndarray | None = None,
             others_owned: np.ndarray | None = None,
             contact_mm: float = 0.0) -> Plausibility:
     """Compare a surface with its segment on a box of the working grid.
@@ -172,6 +176,10 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         Bone outside every segment that touched this bone without a joint space and was
         merged into it (:attr:`.ownership.Ownership.merged`): how much of it the surface holds
         is ``unlabelled_bone_ml``.
+    added : (z, y, x) bool array, optional
+        Bone outside every segment merged into this bone as its own (:attr:`.ownership.
+        Ownership.added`: it continues the bone without a joint space): how much of it the
+        surface holds is ``added_bone_ml``.
     others_owned : (z, y, x) bool array, optional
         Bone that the ownership gave to another bone (a label reaching across a joint into
         its neighbour): not counted as missing.
@@ -183,6 +191,7 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     unlabelled_ml = 0.0
     if unlabelled is not None:
         unlabelled_ml = float((unlabelled & inside).sum() * spacing ** 3 / 1000.0)
+    added_ml = 0.0 if added is None else float((added & inside).sum() * spacing ** 3 / 1000.0)
     if unsupported is not None:
         unsupported = unsupported & label & in_image
         unsupported_ml = float(unsupported.sum() * spacing ** 3 / 1000.0)
@@ -251,7 +260,7 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         untouched_pieces=int(len(np.unique(pieces[islands]))),
         untouched_bone_ml=float(left_out.sum() * voxel / 1000.0),
         unsupported_segment_ml=unsupported_ml, unsupported_pieces=int(unsupported_pieces),
-        unlabelled_bone_ml=unlabelled_ml)
+        unlabelled_bone_ml=unlabelled_ml, added_bone_ml=added_ml)
     return p
 
 
