@@ -556,6 +556,34 @@ def test_m0_is_cut_back_out_of_what_is_neither_bone_nor_segment():
     assert check_surface(cut.vertices, cut.faces).ok
 
 
+@pytest.mark.parametrize("with_bone", [False, True])
+def test_m0_tunnels_the_segment_cannot_close_are_plugged_from_the_bone(with_bone):
+    """A thin plate that Poisson opened (M0 has a hole) where the segment is lace too (an AI
+    label of a thin blade): the bone the thresholds hold plugs the hole; without it the hole
+    stays (and the genus says so)."""
+    from BoneWatertightLib.stages.poisson import Fusion, contour, remesh, surface_genus
+
+    d = 0.4
+    z, y, x = np.indices((30, 80, 80)) * d          # 32 x 32 x 12 mm
+    plate = (np.abs(z - 6.0) < 1.1) & (np.abs(y - 16) < 12) & (np.abs(x - 16) < 12)
+    hole = np.hypot(x - 16, y - 16) < 3.0
+    m0 = contour((plate & ~hole).astype(np.float32), np.zeros(3), d, 0.5)
+    assert surface_genus(m0) == 1
+    fusion = Fusion(label=plate & ~hole, label_origin=np.zeros(3), label_spacing=d, genus=0,
+                    close_mm=(1.0,), bone=plate if with_bone else None)
+    out = remesh(m0, 0.5, fusion=fusion)
+    assert check_surface(out.vertices, out.faces).ok
+    if with_bone:
+        assert surface_genus(out) == 0
+        assert fusion.info["bone_plugs"] >= 1 and fusion.info["genus_after"] == 0
+        # the plug is the hole's bone: about pi r^2 x the plate's thickness
+        assert 0.5 * np.pi * 9.0 * 2.2 < fusion.info["bone_fill_mm3"] < 3.0 * np.pi * 9.0 * 2.2
+        assert fusion.fill_mask is None  # nothing came from the segment (no "label only")
+    else:
+        assert surface_genus(out) == 1 and fusion.info["genus_after"] == 1
+        assert fusion.info["bone_plugs"] == 0
+
+
 def test_contact_with_unlabelled_bone_without_a_joint_space_fails_or_warns():
     """Against bone no segment labels the boundary is the flooding's guess where the CT shows
     no joint space: a large share of the surface there fails the run (label the neighbour), a

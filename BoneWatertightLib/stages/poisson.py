@@ -232,6 +232,10 @@ class Fusion:
     ``genus``: where the surface has more tunnels than the segment, the segment fills them
     (:func:`_fill_tunnels`: a label-restricted closing by ``close_mm[0]``, then plugs of
     holes, :func:`_plugs`, reaching ``close_mm[0]`` to both sides).
+    ``bone``: optional (z, y, x) bool on the label's grid, the bone the CT's thresholds hold
+    (the bone's occupancy): where tunnels remain after the segment's fill, plugs of them from
+    it (a plate the thresholds hold two or three voxels thick, which Poisson at depth 7
+    cannot resolve and opens, while the segment is lace there too).
     ``carve``: optional (z, y, x) bool on the label's grid, voxels that are neither bone on
     the CT nor the segment (:func:`carve_region`): the occupancy is cut back out of them before
     contouring (Poisson closes over tunnels and deep concavities it cannot see into, e.g. a
@@ -251,6 +255,7 @@ class Fusion:
     # (z, y, x) bool on the label's grid: neither bone nor segment (see :func:`carve_region`);
     # the surface is kept out of it.
     carve: np.ndarray = None
+    bone: np.ndarray = None
 
 
 def surface_genus(surface: Surface) -> int:
@@ -408,10 +413,14 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
        tried one by one, largest first, each grown two steps into the segment (to meet the
        hole's rim) and kept when it lowers the genus - a plug of a hole does; a flap of the
        segment beside the bone does not, and stays out.
-    At most FILL_MAX_TRIALS contours; what was done is recorded in ``fusion.info``."""
+    3. The same plugs from ``fusion.bone`` (the bone the thresholds hold), where tunnels
+       remain: a segment that is lace itself (an AI label of a thin blade) cannot close them.
+    At most FILL_MAX_TRIALS contours per source; what was done is recorded in
+    ``fusion.info``."""
     genus = surface_genus(out)
     fusion.info.update(genus_before=int(genus), segment_genus=int(fusion.genus),
-                       label_fill_voxels=0, label_fill_mm3=0.0, plugs=0, fill_trials=0)
+                       label_fill_voxels=0, label_fill_mm3=0.0, plugs=0, fill_trials=0,
+                       bone_plugs=0, bone_fill_mm3=0.0)
     if genus <= fusion.genus:
         fusion.info["genus_after"] = int(genus)
         return out
@@ -437,33 +446,45 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
             return True
         return False
 
+    def plug_holes(source, last_trial):
+        """Plugs of ``source`` (z, y, x bool) tried all at once, then one by one, largest
+        first, up to contour number ``last_trial``; returns how many were kept."""
+        kept = 0
+        pieces, size = _plugs(field_zyx, source, h, reach)
+        big = np.flatnonzero(size >= FILL_MIN_VOXELS)
+        if len(big) > 1:
+            every = ndimage.binary_dilation(np.isin(pieces, big), structure=np.ones((3, 3, 3), bool),
+                                            iterations=2) & source
+            if attempt(every, soft=True):
+                kept += int(len(big))
+                size[big] = 0
+        for p in np.argsort(size)[::-1]:
+            if size[p] < FILL_MIN_VOXELS or trials >= last_trial or genus <= fusion.genus:
+                break
+            grown = ndimage.binary_dilation(pieces == p, structure=np.ones((3, 3, 3), bool),
+                                            iterations=2) & source
+            if attempt(grown, soft=True):
+                kept += 1
+        return kept
+
     reach = fusion.close_mm[0] if fusion.close_mm else 2.0 * h
     if fusion.close_mm:
         add = _close_with_label(field_zyx, label, h, fusion.close_mm[0])
         if add.any():
             attempt(add, soft=False)
     if genus > fusion.genus:
-        pieces, size = _plugs(field_zyx, label, h, reach)
-        # All plugs at once first (one contour when they all close holes), then one by one.
-        big = np.flatnonzero(size >= FILL_MIN_VOXELS)
-        if len(big) > 1:
-            every = ndimage.binary_dilation(np.isin(pieces, big), structure=np.ones((3, 3, 3), bool),
-                                            iterations=2) & label
-            if attempt(every, soft=True):
-                fusion.info["plugs"] += int(len(big))
-                size[big] = 0
-        for p in np.argsort(size)[::-1]:
-            if size[p] < FILL_MIN_VOXELS or trials >= FILL_MAX_TRIALS or genus <= fusion.genus:
-                break
-            grown = ndimage.binary_dilation(pieces == p, structure=np.ones((3, 3, 3), bool),
-                                            iterations=2) & label
-            if attempt(grown, soft=True):
-                fusion.info["plugs"] += 1
+        fusion.info["plugs"] += plug_holes(label, FILL_MAX_TRIALS)
+    from_label = filled.copy()
+    if genus > fusion.genus and fusion.bone is not None:
+        fusion.info["bone_plugs"] = plug_holes(
+            _label_on(fusion, field_zyx.shape, lo, h, fusion.bone), trials + FILL_MAX_TRIALS)
+        fusion.info["bone_fill_mm3"] = float((filled & ~from_label).sum() * h ** 3)
     if filled.any():
         out = contour(field_zyx, lo, h, 0.5, smooth_iterations)
-        fusion.info.update(label_fill_voxels=int(filled.sum()),
-                           label_fill_mm3=float(filled.sum() * h ** 3))
-        fusion.fill_mask = (filled, lo, h)
+    if from_label.any():
+        fusion.info.update(label_fill_voxels=int(from_label.sum()),
+                           label_fill_mm3=float(from_label.sum() * h ** 3))
+        fusion.fill_mask = (from_label, lo, h)
     fusion.info["genus_after"] = int(genus)
     fusion.info["fill_trials"] = int(trials)
     return out
