@@ -742,7 +742,7 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     fusion = _poisson.Fusion(label=trusted,
                              label_origin=np.zeros(3), label_spacing=d,
                              genus=_plaus.segment_genus(trusted, d, ws.prep.coarseness),
-                             close_mm=(ws.prep.coarseness,), bone=masks.occupancy)
+                             close_mm=(ws.prep.coarseness,), bone=masks.w_ht | masks.w_h0)
     # Where neither the CT nor the segment has bone, M0 has none either: Poisson closes over
     # what the views do not see into (a curved canal, a deep notch).
     bone_ct = masks.occupancy | masks.w_ht | masks.w_h0

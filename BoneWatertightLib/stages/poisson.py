@@ -233,9 +233,10 @@ class Fusion:
     (:func:`_fill_tunnels`: a label-restricted closing by ``close_mm[0]``, then plugs of
     holes, :func:`_plugs`, reaching ``close_mm[0]`` to both sides).
     ``bone``: optional (z, y, x) bool on the label's grid, the bone the CT's thresholds hold
-    (the bone's occupancy): where tunnels remain after the segment's fill, plugs of them from
-    it (a plate the thresholds hold two or three voxels thick, which Poisson at depth 7
-    cannot resolve and opens, while the segment is lace there too).
+    (W_HT with the thin plates; not its solidified version, whose closing would also bridge a
+    foramen): where tunnels remain after the segment's fill, plugs of them from it (a plate the
+    thresholds hold two or three voxels thick, which Poisson at depth 7 cannot resolve and
+    opens, while the segment is lace there too).
     ``carve``: optional (z, y, x) bool on the label's grid, voxels that are neither bone on
     the CT nor the segment (:func:`carve_region`): the occupancy is cut back out of them before
     contouring (Poisson closes over tunnels and deep concavities it cannot see into, e.g. a
