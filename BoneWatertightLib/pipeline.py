@@ -941,8 +941,15 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
     with timed(bone.times, "plausibility"):
         plaus, box, segment = plausibility_of(run, ws, bone, verts, faces, phys, planes)
     warnings = _plausibility_warnings(run, plaus)
-    plaus.segment_genus = _plaus.segment_genus(
-        segment & _plaus.image_mask(box, planes, ws.d), ws.d, ws.prep.coarseness)
+    fusion = bone.fusion
+    if not planes and fusion is not None and fusion.genus is not None \
+            and int(fusion.label.sum()) == int(segment.sum()):
+        # M0's fill measured the same voxels (its trusted segment is a subset of the label,
+        # both boxes hold all of it, and the genus does not depend on the box).
+        plaus.segment_genus = int(fusion.genus)
+    else:
+        plaus.segment_genus = _plaus.segment_genus(
+            segment & _plaus.image_mask(box, planes, ws.d), ws.d, ws.prep.coarseness)
     warnings += _plaus.tunnel_warning(name, checks.genus, plaus.segment_genus)
     constraints = bone.constraints
     dist, _ = cKDTree(grid.grid_to_physical(constraints)).query(phys, workers=-1) \

@@ -556,12 +556,13 @@ def test_m0_is_cut_back_out_of_what_is_neither_bone_nor_segment():
     assert check_surface(cut.vertices, cut.faces).ok
 
 
-@pytest.mark.parametrize("case", ["lace", "lace_no_bone", "no_bone_there"])
+@pytest.mark.parametrize("case", ["lace", "lace_counted", "lace_no_bone", "no_bone_there"])
 def test_m0_tunnels_the_segment_cannot_close_are_plugged_from_the_bone(case):
     """A thin plate that Poisson opened (M0 has a hole) where the segment is lace (an AI label
     of a thin blade: holes smaller than its resolution): the bone the thresholds hold plugs the
     hole; without it, or where the thresholds see no bone either (a foramen), the hole stays
-    (and the genus says so)."""
+    (and the genus says so). The segment's own count of tunnels (``lace_counted``: its lace
+    counts as tunnels at its resolution) does not stop the bone's plugs."""
     from BoneWatertightLib.stages.poisson import Fusion, contour, remesh, surface_genus
 
     d = 0.4
@@ -575,12 +576,13 @@ def test_m0_tunnels_the_segment_cannot_close_are_plugged_from_the_bone(case):
     lattice = (np.hypot((x + 1) % 2.0 - 1.0, (y + 1) % 2.0 - 1.0) < 0.9) & \
         (np.hypot(x - 16, y - 16) < 5.0)
     label = plate & ~lattice
-    fusion = Fusion(label=label, label_origin=np.zeros(3), label_spacing=d, genus=0,
-                    close_mm=(2.0,), bone={"lace": plate, "lace_no_bone": None,
-                                           "no_bone_there": plate & ~hole}[case])
+    fusion = Fusion(label=label, label_origin=np.zeros(3), label_spacing=d,
+                    genus=3 if case == "lace_counted" else 0, close_mm=(2.0,),
+                    bone={"lace": plate, "lace_counted": plate, "lace_no_bone": None,
+                          "no_bone_there": plate & ~hole}[case])
     out = remesh(m0, 0.5, fusion=fusion)
     assert check_surface(out.vertices, out.faces).ok
-    if case == "lace":
+    if case in ("lace", "lace_counted"):
         assert surface_genus(out) == 0
         assert fusion.info["bone_plugs"] >= 1 and fusion.info["genus_after"] == 0
         # the plug is the hole's bone: about pi r^2 x the plate's thickness

@@ -177,6 +177,8 @@ def test_tiny_phantom_checks_accuracy_and_no_bridge(tiny, tiny_result):
     assert "DistanceToConstraints" in surf.point_data
     for key in ("P_H0", "P_HT", "visible_points", "constraints", "M0"):
         assert key in tiny_result.intermediates
+    # the segment's genus, counted once for M0's fill and reused by the tunnel warning
+    assert rep.plausibility.segment_genus == 0
 
 
 def test_inputs_are_not_modified(tiny):

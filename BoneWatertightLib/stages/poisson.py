@@ -414,15 +414,17 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
        tried one by one, largest first, each grown two steps into the segment (to meet the
        hole's rim) and kept when it lowers the genus - a plug of a hole does; a flap of the
        segment beside the bone does not, and stays out.
-    3. The same plugs from ``fusion.bone`` (the bone the thresholds hold), where tunnels
-       remain: a segment that is lace itself (an AI label of a thin blade) cannot close them.
+    3. The same plugs from ``fusion.bone`` (the bone the thresholds hold) for any tunnel left,
+       whatever the segment's genus: a tunnel that thresholded bone plugs is no tunnel of the
+       bone (a foramen or canal is dark on the CT), and a segment that is lace itself (an AI
+       label of a thin blade) has tunnels of its own that say nothing of the bone's.
     At most FILL_MAX_TRIALS contours per source; what was done is recorded in
     ``fusion.info``."""
     genus = surface_genus(out)
     fusion.info.update(genus_before=int(genus), segment_genus=int(fusion.genus),
                        label_fill_voxels=0, label_fill_mm3=0.0, plugs=0, fill_trials=0,
                        bone_plugs=0, bone_fill_mm3=0.0)
-    if genus <= fusion.genus:
+    if genus <= fusion.genus and (fusion.bone is None or genus == 0):
         fusion.info["genus_after"] = int(genus)
         return out
     lo = np.asarray(lo, np.float64)
@@ -447,9 +449,10 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
             return True
         return False
 
-    def plug_holes(source, last_trial):
+    def plug_holes(source, last_trial, goal):
         """Plugs of ``source`` (z, y, x bool) tried all at once, then one by one, largest
-        first, up to contour number ``last_trial``; returns how many were kept."""
+        first, up to contour number ``last_trial`` or genus ``goal``; returns how many were
+        kept."""
         kept = 0
         pieces, size = _plugs(field_zyx, source, h, reach)
         big = np.flatnonzero(size >= FILL_MIN_VOXELS)
@@ -460,7 +463,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
                 kept += int(len(big))
                 size[big] = 0
         for p in np.argsort(size)[::-1]:
-            if size[p] < FILL_MIN_VOXELS or trials >= last_trial or genus <= fusion.genus:
+            if size[p] < FILL_MIN_VOXELS or trials >= last_trial or genus <= goal:
                 break
             grown = ndimage.binary_dilation(pieces == p, structure=np.ones((3, 3, 3), bool),
                                             iterations=2) & source
@@ -469,16 +472,16 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         return kept
 
     reach = fusion.close_mm[0] if fusion.close_mm else 2.0 * h
-    if fusion.close_mm:
+    if fusion.close_mm and genus > fusion.genus:
         add = _close_with_label(field_zyx, label, h, fusion.close_mm[0])
         if add.any():
             attempt(add, soft=False)
     if genus > fusion.genus:
-        fusion.info["plugs"] += plug_holes(label, FILL_MAX_TRIALS)
+        fusion.info["plugs"] += plug_holes(label, FILL_MAX_TRIALS, fusion.genus)
     from_label = filled.copy()
-    if genus > fusion.genus and fusion.bone is not None:
+    if genus > 0 and fusion.bone is not None:
         fusion.info["bone_plugs"] = plug_holes(
-            _label_on(fusion, field_zyx.shape, lo, h, fusion.bone), trials + FILL_MAX_TRIALS)
+            _label_on(fusion, field_zyx.shape, lo, h, fusion.bone), trials + FILL_MAX_TRIALS, 0)
         fusion.info["bone_fill_mm3"] = float((filled & ~from_label).sum() * h ** 3)
     if filled.any():
         out = contour(field_zyx, lo, h, 0.5, smooth_iterations)
