@@ -738,11 +738,12 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
         trusted &= ~own.unsupported[masks.box]
     # The segment's tunnels counted at its own resolution (its stair steps and holes smaller
     # than that are no tunnels of the bone: plausibility.segment_genus); the fill takes its
-    # material from the segment itself (smoothing would thin its thin parts away).
+    # material from the segment itself (smoothing would thin its thin parts away); tunnels it
+    # cannot close, the thresholded bone may (W_HT holds W_H0 and the thin plates).
     fusion = _poisson.Fusion(label=trusted,
                              label_origin=np.zeros(3), label_spacing=d,
                              genus=_plaus.segment_genus(trusted, d, ws.prep.coarseness),
-                             close_mm=(ws.prep.coarseness,), bone=masks.w_ht | masks.w_h0)
+                             close_mm=(ws.prep.coarseness,), bone=masks.w_ht)
     # Where neither the CT nor the segment has bone, M0 has none either: Poisson closes over
     # what the views do not see into (a curved canal, a deep notch).
     bone_ct = masks.occupancy | masks.w_ht | masks.w_h0

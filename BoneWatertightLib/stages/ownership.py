@@ -336,13 +336,18 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     ws[joint_space] = 0
     owner = _owners(ws, seg.regions, markers, labels, merged, boxes)
     merged_ids = {p for p, _, _, _ in merged}
-    in_merged = np.isin(ws, list(merged_ids))
-    owner[(ws >= other) & ~in_merged & (owner == 0)] = other
     foreign = _foreign_pieces(faces, merged_ids, set(range(other, other + n_pieces)) - merged_ids)
     foreign |= {p for p, _, f, _ in merged if f >= OWN_MAX_VALLEY_FRACTION}
-    taken = np.isin(ws, list(foreign)) & (owner > 0) if foreign else None
-    own_ids = merged_ids - foreign
-    added = np.isin(ws, list(own_ids)) & (owner > 0) if own_ids else None
+    # One pass over the grid: 1 = a neighbour's merged fragment, 2 = the bone's own.
+    kind_of = np.zeros(int(ws.max()) + 1, np.uint8)
+    kind_of[list(foreign)] = 1
+    kind_of[list(merged_ids - foreign)] = 2
+    kind = kind_of[ws]
+    in_merged = kind > 0
+    owner[(ws >= other) & ~in_merged & (owner == 0)] = other
+    taken = (kind == 1) & (owner > 0) if foreign else None
+    added = (kind == 2) & (owner > 0) if merged_ids - foreign else None
+    del kind
     sizes = np.bincount(ws[in_merged], minlength=max(merged_ids, default=0) + 1)
     merged_ml = {p: float(sizes[p] * spacing ** 3 / 1000.0) for p in merged_ids}
     contacts = _pair_contacts(faces, n, other, merged_ids, spacing ** 2)
