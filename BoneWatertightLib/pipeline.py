@@ -883,6 +883,11 @@ def contact_stage(run: _Run, ws: Workspace, bones: dict) -> None:
             if discarded:
                 b.fallbacks.add("contacts", "a contact pass failed the self-intersection check: "
                                 "its moves were discarded", discarded, "vertices")
+            relaxed = sum(rec[k][3] for rec in history if k in rec)
+            if relaxed:
+                b.fallbacks.add("contacts", "moves back into the bone's territory kept flipping "
+                                "faces (a fold or spike of the surface): the neighbourhood was "
+                                "relaxed towards its neighbours' mean first", relaxed, "vertices")
 
 
 def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, min_gap: float,

@@ -161,6 +161,26 @@ def test_ownership_split_follows_the_joint_space_not_the_wrong_labels():
     assert not contact or contact[0]["valley_seen_fraction"] > 0.5
 
 
+def test_a_joint_space_seen_on_part_of_the_contact_decides_the_whole_cortex():
+    """The labels give block 1's end wall to block 2; the CT shows the joint space on half of
+    the contact (y >= 12) and hides it on the other half (bright, as thick slices blur it).
+    Flooding alone lets block 2 in through the hidden half and along block 1's wall into the
+    seen half; the joint cut gives the wall back to block 1 wherever the gap is seen, and
+    follows the labels where it is not."""
+    ct, labels = _two_blocks(shift_label=2, gap=2)
+    ct[4:20, 4:12, 28:30] = 1200.0  # the hidden half of the joint
+    own = ownership.compute_ownership(ct, labels, 2, 1.0, h0=400.0, ht=200.0, theta_max=2500.0,
+                                      soft=40.0, contrast=1160.0, coarseness=1.0, band_mm=3.0)
+    for y in range(12, 19):  # seen: the split is the joint space
+        row = own.owner[12, y]
+        assert (row[6:28] == 1).all() and (row[30:54] == 2).all(), (y, row[20:32])
+    for y in range(5, 11):  # hidden: the labels' boundary (x 25 | 26) within a voxel
+        row = own.owner[12, y]
+        assert (row[6:25] == 1).all() and (row[28:54] == 2).all(), (y, row[20:32])
+    cut = own.info["joint_cuts"]
+    assert [(c["a"], c["b"]) for c in cut] == [(1, 2)] and cut[0]["changed_voxels"] > 0
+
+
 def test_unlabelled_bone_beyond_a_joint_stays_a_neighbour():
     ct, labels = _two_blocks(shift_label=0, gap=2)
     labels[labels == 2] = 0  # the neighbour is not labelled
@@ -255,6 +275,27 @@ def test_resolve_contacts_separates_overlapping_surfaces_by_the_gap():
     # far from the joint nothing moved
     far = a[0][:, 2] < 15.0
     assert np.allclose(surfaces[1][0][far], a[0][far], atol=0.05)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_resolve_contacts_separates_a_jagged_surface(seed):
+    """A ragged surface (as a label's staircase leaves it) whose moves back into its territory
+    flip faces round after round: its neighbourhood is relaxed until they can be made."""
+    shape = (40, 40, 60)
+    rng = np.random.default_rng(seed)
+    va, fa = icosphere(level=4, radius=8.0, centre=(20.0, 20.0, 20.0))
+    vb, fb = icosphere(level=3, radius=8.0, centre=(20.0, 20.0, 35.5))  # 0.5 mm overlap
+    normal = (va - 20.0) / np.linalg.norm(va - 20.0, axis=1, keepdims=True)
+    top = normal[:, 2] > 0.6
+    va = va.copy()
+    va[top] += normal[top] * rng.uniform(0.0, 2.0, int(top.sum()))[:, None]
+    assert check_surface(va, fa).ok
+    surfaces = {1: [va, fa], 2: [vb, fb]}
+    contacts.resolve_contacts(surfaces, {}, shape, 1.0, 0.3, passes=3)
+    after = contacts.pair_report(surfaces[1][0], fa, surfaces[2][0], fb)
+    assert after["crossing_face_pairs"] == 0 and after["a_inside_b"] == 0
+    assert after["b_inside_a"] == 0 and after["min_gap_mm"] >= 0.3 - 1e-6
+    assert check_surface(surfaces[1][0], fa).ok
 
 
 def test_resolve_contacts_moves_only_the_active_bones_and_reuses_its_cache(monkeypatch):

@@ -42,6 +42,8 @@ ENFORCE_FREE_WEIGHT = 0.05
 ENFORCE_ROUNDS = 12
 # Rings of neighbours around the offending vertices that move with them.
 ENFORCE_RINGS = 6
+# Rings around a vertex whose move keeps being backed off that are relaxed (see enforce).
+ENFORCE_RELAX_RINGS = 2
 # Passes of the contact resolution (each from the current surfaces).
 CONTACT_PASSES = 3
 # Beyond a field's box no other bone is near: phi reads -FAR there (always on the bone's side).
@@ -179,7 +181,7 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
             rounds: int = ENFORCE_ROUNDS, pinned: np.ndarray | None = None,
             operators: dict | None = None):
     """Move vertices with phi > -gap / 2 back along -grad phi; returns (vertices, number still
-    beyond, number moved, number of moves discarded).
+    beyond, number moved, number of moves discarded, number of vertices relaxed).
 
     Each round solves a regularised Laplacian system on the offending vertices and a few rings
     around them (the rest of the surface is fixed), so the neighbourhood follows smoothly; the
@@ -189,7 +191,7 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
     ``operators``: a dict kept between calls on the same ``faces`` (the mesh's Laplacian
     matrices, built once)."""
     if phi_entry is None:
-        return vertices, 0, 0, 0
+        return vertices, 0, 0, 0, 0
     from scipy.sparse.linalg import spsolve
 
     origin, phi = phi_entry
@@ -199,7 +201,7 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
     value = sample_field(phi, v, spacing, cval=-FAR)
     free = np.ones(len(v), bool) if pinned is None else ~np.asarray(pinned, bool)
     if not ((value > target) & free).any():
-        return vertices, 0, 0, 0
+        return vertices, 0, 0, 0, 0
     grads = [ndimage.sobel(phi, axis=a) / (8.0 * spacing) for a in (2, 1, 0)]
     if operators is None or operators.get("faces") is not faces:
         L = laplacian(len(v), faces)
@@ -210,6 +212,7 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
         operators = built
     LtL, adjacency = operators["LtL"], operators["adjacency"]
     moved = np.zeros(len(v), bool)
+    relaxed_any = np.zeros(len(v), bool)
     stiffness = ENFORCE_SMOOTHNESS
     for r in range(rounds):
         value = sample_field(phi, v, spacing, cval=-FAR)
@@ -234,6 +237,20 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
         new, ok, _ = safe_update(v, new, faces, intersections=False)
         if not ok:
             new = v
+        stuck = bad & np.all(new == v, axis=1)
+        if stuck.any():
+            # A move that would flip a face is backed off, round after round, at a fold or a
+            # spike of the surface: relax the neighbourhood towards its neighbours' mean (a spike
+            # into the other bone comes back on its own side), so the next round can move it.
+            ring = _ring_patch(adjacency, stuck, ENFORCE_RELAX_RINGS) & free
+            degree = np.asarray(adjacency.sum(axis=1)).ravel()
+            mean = (adjacency @ new) / np.maximum(degree, 1)[:, None]
+            relaxed = new.copy()
+            relaxed[ring] = 0.5 * (new[ring] + mean[ring])
+            relaxed, ok, _ = safe_update(new, relaxed, faces, intersections=False)
+            if ok:
+                relaxed_any |= np.any(relaxed != new, axis=1)
+                new = relaxed
         if np.array_equal(new, v):
             stiffness *= 2.0  # stuck: let the neighbourhood move more as a whole
         v = new
@@ -241,7 +258,8 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
     # safe_update gives up after its rounds: then keep the verified input
     v = checked if ok else start
     beyond = int((sample_field(phi, v, spacing, cval=-FAR) > -0.5 * gap).sum())
-    return v + origin, beyond, int(moved.sum()), 0 if ok else int(moved.sum())
+    return (v + origin, beyond, int(moved.sum()), 0 if ok else int(moved.sum()),
+            int(relaxed_any.sum()) if ok else 0)
 
 
 def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, min_gap: float,
@@ -253,7 +271,8 @@ def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, 
     ``pinned``: key -> (n,) bool of vertices that never move. ``active``: the keys that may
     move (default all; the others only hold their place). ``cache``: a dict kept between
     calls on the same surfaces (voxelised surfaces, Laplacians). Returns one record per pass:
-    {key: (moved, still beyond, moves discarded by the self-intersection check)}.
+    {key: (moved, still beyond, moves discarded by the self-intersection check, vertices
+    relaxed where moves kept flipping faces)}.
 
     A pass after the first works only on the bones that were still beyond their midway surface:
     the others stay within theirs, since the moves only take surfaces back into their own
@@ -273,11 +292,11 @@ def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, 
                 continue
             v, f = surfaces[k]
             # half a voxel more: the fields are voxelised
-            v2, beyond, moved, discarded = enforce(v, f, entry, spacing, min_gap + 0.5 * spacing,
-                                                   pinned=(pinned or {}).get(k),
-                                                   operators=operators.setdefault(k, {}))
+            v2, beyond, moved, discarded, relaxed = enforce(
+                v, f, entry, spacing, min_gap + 0.5 * spacing, pinned=(pinned or {}).get(k),
+                operators=operators.setdefault(k, {}))
             surfaces[k][0] = v2
-            record[k] = (moved, beyond, discarded)
+            record[k] = (moved, beyond, discarded, relaxed)
         history.append(record)
         if progress:
             progress((p + 1) / passes, f"joint gaps, pass {p + 1}")

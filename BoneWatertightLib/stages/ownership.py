@@ -20,6 +20,12 @@ label is a bone: the targets and their neighbours). Axis order (z, y, x) through
    where two bones meet, the split follows the joint's low-HU valley; where no valley shows,
    it falls midway between the markers (breadth-first on the plateau) - for touching labels,
    their own boundary.
+3b. **Joint cut** (:func:`cut_joint_zones`): flooding splits a plateau at the geodesic midpoint
+   between markers, so where thick slices hide part of a joint space the bone whose markers
+   lie nearer (a label that took a few mm of its neighbour) floods through the hidden part into
+   the other's cortex and along it, around the whole joint. The zone of each pair of touching
+   labelled bones is therefore re-split by a minimum cut between the basins outside it: through
+   the joint space wherever the CT shows it, at the labels' boundary where it does not.
 4. A piece of unlabelled bone whose basin meets bone k without a valley between them is k's
    own bone that the segment missed (a bitten-off end of a rough segment): merged into k. With
    a valley between them it stays a neighbour (this is where a separation can fail: it is
@@ -90,6 +96,20 @@ REGION_CLOSE_FRACTION = 0.15
 # the sacrum on the 3 mm CT 0.44-0.47 (discs above and below) - 0.5 removed 2.1 ml of L5 there.
 SUPPORT_SMOOTH_MM = 1.0
 SUPPORT_MIN_FRACTION = 0.3
+# Joint cut (:func:`cut_joint_zones`): cutting through a voxel costs CUT_SCALE / (1 + g)^2 x
+# (1 + CUT_LABEL_WEIGHT x delta^2 / (1 + g)^2), g = its gap valley (the deepest 1-D black
+# top-hat of the three axes) beyond the first quantum, in quanta (less is the texture of spongy
+# bone), delta = its distance from the labels' midway surface / r_contact (capped at
+# CUT_LABEL_CAP). A seen joint space is the cheapest cut and there the labels' pull fades; where
+# the CT shows no gap the cut keeps to the labels' boundary rather than take the shortest way
+# through one bone (a weak pull, 8 without the fading, flattened the hidden pole of the femoral
+# head by up to 4 mm on the 2.5 mm joint phantom). Measured on the joint phantoms (2.0 and
+# 2.5 mm slices, rough / AI / 3 mm-stolen labels, seeds 0 and 1), femur p95 without -> with
+# the cut: stolen 2.62 -> 2.19, 1.11 -> 0.47 and refused -> 2.33 (interpenetrating), rough
+# 2.04 -> 1.92, 2.61 -> 2.45, 0.59 -> 0.50, AI 0.48 -> 0.49, 0.50 -> 0.52, 0.41 -> 0.42.
+CUT_SCALE = 100.0
+CUT_LABEL_WEIGHT = 30.0
+CUT_LABEL_CAP = 1.5
 
 
 @dataclass
@@ -180,6 +200,20 @@ def valley_map(ct: np.ndarray, spacing: float, radius_mm: float) -> np.ndarray:
     return closed - ct
 
 
+def gap_valley(ct: np.ndarray, spacing: float, radius_mm: float) -> np.ndarray:
+    """The deepest 1-D black top-hat of the three axes (segments of half-width ``radius_mm``):
+    a thin dark gap between two bright walls, seen across it. Unlike the cube's top-hat
+    (:func:`valley_map`) it stays about zero in the concave inside of a curved cortex, which a
+    cube does not fit into (float32, HU)."""
+    k = 2 * max(1, int(round(radius_mm / spacing))) + 1
+    out = np.zeros(ct.shape, np.float32)
+    for axis in range(3):
+        top = ndimage.minimum_filter1d(ndimage.maximum_filter1d(ct, k, axis=axis, mode="nearest"),
+                                       k, axis=axis, mode="nearest") - ct
+        np.maximum(out, top, out=out)
+    return out
+
+
 def flood_from_markers(markers: np.ndarray, levels: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Marker-controlled flooding in level order, breadth-first within a level.
 
@@ -240,6 +274,139 @@ def flood_from_markers(markers: np.ndarray, levels: np.ndarray, mask: np.ndarray
             lab[idx] = lbl
             idx, lbl = expand(idx, lbl, level)
     return lab.reshape(shape[0] + 2, sy, sx)[1:-1, 1:-1, 1:-1]
+
+
+def _touching_labels(ws: np.ndarray, n: int) -> list:
+    """The pairs (a, b), a < b <= n, of labelled basins that share a voxel face."""
+    keys = set()
+    for axis in range(3):
+        a = [slice(None)] * 3
+        b = [slice(None)] * 3
+        a[axis] = slice(0, -1)
+        b[axis] = slice(1, None)
+        wa, wb = ws[tuple(a)], ws[tuple(b)]
+        sel = (wa != wb) & (wa > 0) & (wb > 0) & (wa <= n) & (wb <= n)
+        if sel.any():
+            lo = np.minimum(wa[sel], wb[sel]).astype(np.int64)
+            hi = np.maximum(wa[sel], wb[sel]).astype(np.int64)
+            keys.update(np.unique(lo * 100000 + hi).tolist())
+    return sorted((int(k // 100000), int(k % 100000)) for k in keys)
+
+
+def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.ndarray,
+                    n: int, spacing: float, r_contact: float, quantum: float,
+                    radius_mm: float) -> list:
+    """Re-decide, in place, the voxels of ``ws`` where two labelled bones meet by a minimum cut.
+
+    The flooding splits a joint zone at the geodesic midpoint between the two bones' markers
+    wherever no valley stops it: where the slices hide a joint space, the bone whose markers
+    lie nearer (a label that took a few mm of its neighbour) floods into the other's cortex and
+    along it, around the whole joint. Here the zone of a pair - the voxels of both basins
+    within ``r_contact`` of both labels - is split by the cut of least cost between the basins'
+    voxels outside it: through the joint space where the CT shows it (cheap), continued over
+    the part the slices hide by the smallest surface near the labels' boundary (see CUT_*).
+
+    Parameters
+    ----------
+    ws : (z, y, x) int array
+        The flooding's basins (label index), changed in place.
+    fg : (z, y, x) bool array
+        The bone evidence F.
+    labels : (z, y, x) uint array
+        The label index map (1..n).
+    ct : (z, y, x) float32 array
+        The filtered CT (HU).
+    n : int
+        Number of labels.
+    spacing, r_contact : float
+        Voxel size and the joint zone's reach (mm).
+    quantum, radius_mm : float
+        The valley quantum (HU) and the valley filter's half-width (mm), as for the flooding.
+
+    Returns
+    -------
+    list of dict
+        Per pair: ``a``, ``b``, ``zone_voxels``, ``changed_voxels`` (moved to the other bone).
+    """
+    from scipy import sparse
+    from scipy.sparse.csgraph import breadth_first_order, maximum_flow
+
+    out = []
+    pad = int(np.ceil(r_contact / spacing)) + 2
+    boxes = ndimage.find_objects(labels, max_label=n)
+    for a, b in _touching_labels(ws, n):
+        if boxes[a - 1] is None or boxes[b - 1] is None:
+            continue
+        # Voxels within r_contact of both labels lie in their boxes grown by pad; their nearest
+        # voxels of either label within one pad more.
+        sl = tuple(slice(max(0, max(p.start, q.start) - 2 * pad),
+                         min(size, min(p.stop, q.stop) + 2 * pad))
+                   for p, q, size in zip(boxes[a - 1], boxes[b - 1], labels.shape))
+        if any(x.start >= x.stop for x in sl):
+            continue
+        lab = labels[sl]
+        da = distance_outside(lab == a) * spacing
+        db = distance_outside(lab == b) * spacing
+        w = ws[sl]
+        zone = fg[sl] & ((w == a) | (w == b)) & (da <= r_contact) & (db <= r_contact)
+        side_a = (w == a) & ~zone
+        side_b = (w == b) & ~zone
+        nz = int(zone.sum())
+        if not nz:
+            continue
+        ids = np.full(zone.shape, -1, np.int64)
+        ids[zone] = np.arange(nz)
+        src, snk = nz, nz + 1
+        delta = np.minimum(0.5 * np.abs(da - db) / r_contact, CUT_LABEL_CAP)
+        # Less than a quantum is the texture of spongy bone, not a gap: it does not count.
+        gaps = np.clip(gap_valley(ct[sl], spacing, radius_mm) / quantum - 1.0, 0, None)
+        # The labels' pull fades where a gap is seen: there the CT decides.
+        cost = CUT_SCALE / (1.0 + gaps) ** 2 * (1.0 + CUT_LABEL_WEIGHT * delta ** 2
+                                                 / (1.0 + gaps) ** 2)
+        # Integer capacities; every flow stays below 2^31 (scaled down for a very large zone).
+        scale = max(1.0, 6.0 * nz * float(cost.max()) / 2.0e9)
+        cost = np.maximum(np.round(cost / scale), 1).astype(np.int64)
+        big = 6 * int(cost.max()) + 1  # more than all of a voxel's own edges: never cut
+        rows, cols, caps = [], [], []
+        for axis in range(3):
+            lo = [slice(None)] * 3
+            hi = [slice(None)] * 3
+            lo[axis] = slice(0, -1)
+            hi[axis] = slice(1, None)
+            for p, q in ((tuple(lo), tuple(hi)), (tuple(hi), tuple(lo))):
+                m = zone[p] & zone[q]
+                rows.append(ids[p][m])
+                cols.append(ids[q][m])
+                caps.append(np.minimum(cost[p][m], cost[q][m]))
+                m = zone[p] & side_a[q]
+                rows.append(np.full(int(m.sum()), src))
+                cols.append(ids[p][m])
+                caps.append(np.full(int(m.sum()), big))
+                m = zone[p] & side_b[q]
+                rows.append(ids[p][m])
+                cols.append(np.full(int(m.sum()), snk))
+                caps.append(np.full(int(m.sum()), big))
+        rows, cols, caps = (np.concatenate(x) for x in (rows, cols, caps))
+        if not ((rows == src).any() and (cols == snk).any()):
+            continue  # the zone does not lie between the two bones
+        graph = sparse.csr_matrix((caps.astype(np.int32), (rows, cols)), shape=(nz + 2, nz + 2))
+        flow = maximum_flow(graph, src, snk, method="dinic").flow
+        residual = graph - flow
+        residual.data = np.clip(residual.data, 0, None)
+        residual.eliminate_zeros()
+        # a's side: reachable from a's voxels in the residual graph; b's: reaching b's. A part
+        # of the zone joined to neither keeps the flooding's owner.
+        to_a = np.zeros(nz + 2, bool)
+        to_a[breadth_first_order(residual, src, directed=True, return_predecessors=False)] = True
+        to_b = np.zeros(nz + 2, bool)
+        to_b[breadth_first_order(residual.T.tocsr(), snk, directed=True,
+                                 return_predecessors=False)] = True
+        old = w[zone]
+        new = np.where(to_a[:nz], a, np.where(to_b[:nz], b, old))
+        w[zone] = new
+        out.append({"a": int(a), "b": int(b), "zone_voxels": nz,
+                    "changed_voxels": int((new != old).sum())})
+    return out
 
 
 def _interfaces(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, spacing: float, quantum: float,
@@ -321,6 +488,8 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     if progress:
         progress(0.6, "flooding from the markers")
     ws = flood_from_markers(markers, levels, fg)
+    cut_info = cut_joint_zones(ws, fg, labels, ct, n, spacing, r_contact, quantum=quantum,
+                               radius_mm=radius)
     # A visible joint space (cartilage between two cortices, below H0, in a valley of at least
     # SEEN_VALLEY_QUANTA quanta) is no bone: it joins no bone's W_HT (removed below, after the
     # contacts between the basins are measured).
@@ -354,7 +523,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     info = {"core_depth_mm": {int(k): float(v) for k, v in seg.core_depth.items()},
             "contact_zone_mm": r_contact, "valley_quantum_hu": quantum, "label_level_hu": t_low,
             "foreground_voxels": int(fg.sum()), "unlabelled_pieces": n_pieces,
-            "joint_space_voxels": int(joint_space.sum()),
+            "joint_space_voxels": int(joint_space.sum()), "joint_cuts": cut_info,
             "unsupported": {int(k): v for k, v in seg.unsupported_info.items()},
             "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
                                    "contact_mm2": round(s, 1), "ml": round(merged_ml[p], 2),
