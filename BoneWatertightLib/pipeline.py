@@ -1213,9 +1213,12 @@ def _shared_times(times: StageTimes, shared: StageTimes) -> None:
 
 def _ownership_info(ws: Workspace) -> dict:
     own = ws.own
-    return dict(own.info, contacts=[dict(cc, a=_pair_name(cc["a"], own, ws.name_of),
-                                         b=_pair_name(cc["b"], own, ws.name_of))
-                                    for cc in own.contacts])
+    def named(records):
+        return [dict(r, a=_pair_name(r["a"], own, ws.name_of),
+                     b=_pair_name(r["b"], own, ws.name_of)) for r in records]
+
+    return dict(own.info, contacts=named(own.contacts),
+                joint_cuts=named(own.info.get("joint_cuts", [])))
 
 
 def size_problems(prep, params: Parameters, names: Optional[dict] = None) -> dict:

@@ -554,6 +554,21 @@ def test_an_interpenetrating_pair_fails_the_run_or_only_its_two_bones():
     assert all(pairs[0].warnings[0] in r.report.warnings for r in results)
 
 
+def test_the_report_names_the_bones_of_each_joint_cut():
+    from types import SimpleNamespace
+
+    from BoneWatertightLib.pipeline import _ownership_info
+
+    own = SimpleNamespace(other=3, contacts=[{"a": 1, "b": 3, "contact_area_mm2": 5.0}],
+                          info={"joint_cuts": [{"a": 1, "b": 2, "zone_voxels": 10,
+                                                "changed_voxels": 4}]})
+    names = {1: "femur", 2: "hip"}
+    info = _ownership_info(SimpleNamespace(own=own, name_of=names.get))
+    assert info["joint_cuts"] == [{"a": "femur", "b": "hip", "zone_voxels": 10,
+                                   "changed_voxels": 4}]
+    assert (info["contacts"][0]["a"], info["contacts"][0]["b"]) == ("femur", "unlabelled bone")
+
+
 def test_exit_code_of_a_run_of_several_bones():
     from BoneWatertightLib.errors import (EXIT_CANCELLED, EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL,
                                           EXIT_OK, EXIT_PARTIAL, joint_exit_code)
