@@ -1213,6 +1213,7 @@ def _shared_times(times: StageTimes, shared: StageTimes) -> None:
 
 def _ownership_info(ws: Workspace) -> dict:
     own = ws.own
+
     def named(records):
         return [dict(r, a=_pair_name(r["a"], own, ws.name_of),
                      b=_pair_name(r["b"], own, ws.name_of)) for r in records]

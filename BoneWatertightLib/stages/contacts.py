@@ -240,8 +240,9 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
         stuck = bad & np.all(new == v, axis=1)
         if stuck.any():
             # A move that would flip a face is backed off, round after round, at a fold or a
-            # spike of the surface: relax the neighbourhood towards its neighbours' mean (a spike
-            # into the other bone comes back on its own side), so the next round can move it.
+            # spike of the surface: relax the neighbourhood halfway to the mean of each vertex's
+            # one-ring (itself included; a spike into the other bone comes back on its own
+            # side), so the next round can move it.
             ring = _ring_patch(adjacency, stuck, ENFORCE_RELAX_RINGS) & free
             degree = np.asarray(adjacency.sum(axis=1)).ravel()
             mean = (adjacency @ new) / np.maximum(degree, 1)[:, None]
