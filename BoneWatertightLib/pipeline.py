@@ -936,6 +936,9 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
     with timed(bone.times, "cap"):
         verts, faces, flags, cap_area = cap_bone(bone.vertices, bone.faces, planes,
                                                  bone.fallbacks)
+        if planes:
+            verts, faces, flags = drop_cap_slivers(verts, faces, flags, ws.d ** 3,
+                                                   bone.fallbacks)
     progress(0.3, f"{name}: checks")
     with timed(bone.times, "checks"):
         phys = grid.grid_to_physical(verts)
@@ -1009,6 +1012,27 @@ def cap_bone(vertices: np.ndarray, faces: np.ndarray, planes: list,
                                               fallbacks)
         area += a
     return vertices, faces, flags, area
+
+
+def drop_cap_slivers(vertices: np.ndarray, faces: np.ndarray, flags: np.ndarray,
+                     min_volume: float, fallbacks: Optional[FallbackLog] = None) -> tuple:
+    """(vertices, faces, flags) without the closed pieces of the surface that enclose less than
+    ``min_volume`` (mm^3; one voxel of the working grid): where a cap plane clips a tiny bump,
+    it can leave a sliver of its own, which no CT could show as bone. Every other piece stays
+    (a bone the image cuts into real pieces is refused by the checks). Noted in ``fallbacks``."""
+    face_comp, volumes = _pieces(vertices, faces)
+    small = np.flatnonzero((volumes < min_volume) & (volumes < volumes.max())) \
+        if len(volumes) > 1 else np.zeros(0, int)
+    if not len(small):
+        return vertices, faces, flags
+    keep = ~np.isin(face_comp, small)
+    used = np.zeros(len(vertices), bool)
+    used[faces[keep].ravel()] = True
+    index = np.cumsum(used) - 1
+    if fallbacks is not None:
+        fallbacks.add("cap", "closed pieces smaller than one voxel that a cap plane cut off the "
+                      "surface were dropped", int(len(small)), "pieces")
+    return vertices[used], index[faces[keep]], flags[keep]
 
 
 def _raise_failed_checks(checks, phys, faces, planes, name) -> None:
@@ -1278,8 +1302,9 @@ def _crossing_pairs(surfaces: dict) -> list:
                                      surfaces[b][1], crossing_only=True)["crossing_face_pairs"]]
 
 
-def _component_volumes(vertices, faces) -> list:
-    """Enclosed volume (mm^3) of each connected piece of a surface, largest first."""
+def _pieces(vertices, faces) -> tuple:
+    """(piece index of each face (m,), enclosed volume mm^3 of each piece): the connected
+    pieces of a surface."""
     import scipy.sparse as sps
     from scipy.sparse.csgraph import connected_components
 
@@ -1288,9 +1313,15 @@ def _component_volumes(vertices, faces) -> list:
     cols = np.concatenate([faces[:, 1], faces[:, 2]])
     graph = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
     _, comp = connected_components(graph, directed=False)
-    face_comp = comp[faces[:, 0]]
-    vols = [abs(enclosed_volume(vertices, faces[face_comp == c])) for c in np.unique(face_comp)]
-    return sorted(vols, reverse=True)
+    face_comp = np.unique(comp[faces[:, 0]], return_inverse=True)[1].ravel()
+    volumes = np.array([abs(enclosed_volume(vertices, faces[face_comp == c]))
+                        for c in range(int(face_comp.max()) + 1)] if len(faces) else [])
+    return face_comp, volumes
+
+
+def _component_volumes(vertices, faces) -> list:
+    """Enclosed volume (mm^3) of each connected piece of a surface, largest first."""
+    return sorted(_pieces(vertices, faces)[1].tolist(), reverse=True)
 
 
 def _pair_name(k, own, name_of):

@@ -82,6 +82,30 @@ def test_a_crossing_outline_is_cut_again_with_a_smaller_snap(monkeypatch):
         _capped(v, f, [(2, +1, 4.0)], _edge(v, f))
 
 
+def test_a_sliver_the_cap_cut_off_is_dropped_and_noted():
+    from BoneWatertightLib.pipeline import drop_cap_slivers
+    from BoneWatertightLib.report import FallbackLog
+
+    va, fa = icosphere(level=3, radius=10.0)
+    vb, fb = icosphere(level=1, radius=0.2, centre=(12.0, 0.0, 0.0))  # 0.03 mm^3
+    v = np.vstack([va, vb])
+    f = np.vstack([fa, fb + len(va)])
+    flags = np.zeros(len(f), np.uint8)
+    flags[len(fa):] = 4
+    log = FallbackLog()
+    v2, f2, flags2 = drop_cap_slivers(v, f, flags, 0.5 ** 3, log)
+    assert np.array_equal(v2, va) and np.array_equal(f2, fa) and not flags2.any()
+    assert check_surface(v2, f2).ok
+    (note,) = [fb_ for fb_ in log if fb_.stage == "cap"]
+    assert note.count == 1 and note.unit == "pieces"
+    # a piece of a voxel or more is bone the image cut off: it stays (the checks refuse it)
+    vc, fc = icosphere(level=2, radius=2.0, centre=(14.0, 0.0, 0.0))
+    v = np.vstack([va, vc])
+    f = np.vstack([fa, fc + len(va)])
+    v3, f3, _ = drop_cap_slivers(v, f, np.zeros(len(f), np.uint8), 0.5 ** 3, FallbackLog())
+    assert len(v3) == len(v) and len(f3) == len(f)
+
+
 def test_two_planes_cut_a_corner():
     v, f = icosphere(level=4, radius=10.0)
     v2, f2, flags, area = _capped(v, f, [(2, +1, 5.0), (0, -1, -3.0)], _edge(v, f))

@@ -329,7 +329,8 @@ def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.n
     Returns
     -------
     list of dict
-        Per pair: ``a``, ``b``, ``zone_voxels``, ``changed_voxels`` (moved to the other bone).
+        Per pair: ``a``, ``b``, ``seen_fraction`` (of the flooding's interface, where a joint
+        space shows), ``zone_voxels``, ``changed_voxels`` (moved to the other bone).
     """
     from scipy import sparse
     from scipy.sparse.csgraph import breadth_first_order, maximum_flow
@@ -350,9 +351,13 @@ def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.n
         lab = labels[sl]
         if not ((lab == a).any() and (lab == b).any()):
             continue  # their boxes overlap where one of them has no voxel
+        w = ws[sl]
+        # the flooding's interface and how much of it shows a joint space (for the report)
+        total, seen = _interfaces(w, fg[sl], ct[sl], spacing, quantum,
+                                  radius_mm).get((a, b), (0, 0))
+        seen_fraction = seen / total if total else 0.0
         da = distance_outside(lab == a) * spacing
         db = distance_outside(lab == b) * spacing
-        w = ws[sl]
         # One voxel more than r_contact: a joint space at the zone's edge lies in it whole.
         reach = r_contact + spacing
         zone = fg[sl] & ((w == a) | (w == b)) & (da <= reach) & (db <= reach)
@@ -411,8 +416,8 @@ def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.n
         old = w[zone]
         new = np.where(to_a[:nz], a, np.where(to_b[:nz], b, old))
         w[zone] = new
-        out.append({"a": int(a), "b": int(b), "zone_voxels": nz,
-                    "changed_voxels": int((new != old).sum())})
+        out.append({"a": int(a), "b": int(b), "seen_fraction": round(seen_fraction, 3),
+                    "zone_voxels": nz, "changed_voxels": int((new != old).sum())})
     return out
 
 
