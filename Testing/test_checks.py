@@ -500,3 +500,69 @@ def test_safe_update_backs_off_a_local_step_through_the_surface():
     small[0] *= 1.05  # a small step outward is kept
     out, ok, _ = safe_update(v, small, f, intersections=True)
     assert ok and np.array_equal(out, small)
+
+
+def _safe_update_rechecking_everything(old, new, faces, rounds, grow_rounds):
+    """safe_update as it was before the incremental test: every round's exact test looks at
+    every face that moved from ``old`` (the reference the incremental one must equal)."""
+    from BoneWatertightLib.mesh.operators import face_normals
+
+    new = new.copy()
+    sub = np.flatnonzero(np.any(new != old, axis=1)[faces].any(axis=1))
+    fn_before = face_normals(old, faces[sub])
+    ring = 0
+    for r in range(rounds + grow_rounds):
+        bad = np.zeros(len(faces), bool)
+        bad[sub] = np.einsum("ij,ij->i", fn_before, face_normals(new, faces[sub])) < 0.0
+        if not bad.any():
+            moved = np.any(new != old, axis=1)[faces].any(axis=1)
+            pairs = find_self_intersections(new, faces, only=moved)
+            if len(pairs) == 0:
+                return new, True
+            bad[np.unique(pairs)] = True
+        back = np.zeros(len(new), bool)
+        back[faces[bad]] = True
+        if r >= rounds:
+            ring += 1
+            for _ in range(ring):
+                back[faces[back[faces].any(axis=1)]] = True
+        new[back] = old[back]
+    return new, False
+
+
+@pytest.mark.parametrize("seed", range(1, 7))
+def test_safe_update_tests_only_what_it_put_back_and_still_finds_every_crossing(seed):
+    """After the first exact test, safe_update re-tests only the faces of the vertices it put
+    back. Patches of a flat ellipsoid's top pushed through its bottom (no flips: only the
+    exact test sees them) need several rounds, each putting back vertices whose faces then
+    cross: the result equals re-testing every moved face each round, and is clean."""
+    from BoneWatertightLib.mesh import operators
+
+    rng = np.random.default_rng(seed)
+    v, f = icosphere(4, radius=10.0)
+    v = v * np.array([1.0, 1.0, 0.15])
+    new = v.copy()
+    for _ in range(1 + seed % 3):
+        c = rng.normal(scale=3, size=2)
+        patch = (np.hypot(v[:, 0] - c[0], v[:, 1] - c[1]) < rng.uniform(2, 4)) & (v[:, 2] > 0)
+        new[patch, 2] -= rng.uniform(2.5, 3.5)
+    new += rng.normal(scale=0.02, size=new.shape)
+    calls = []
+    original = operators.find_self_intersections
+
+    def counting(*args, **kwargs):
+        calls.append(int(kwargs["only"].sum()))
+        return original(*args, **kwargs)
+
+    operators.find_self_intersections = counting
+    try:
+        out, ok, _ = operators.safe_update(v, new, f, intersections=True)
+    finally:
+        operators.find_self_intersections = original
+    ref, ref_ok = _safe_update_rechecking_everything(v, new, f, operators.BACKOFF_ROUNDS,
+                                                     operators.BACKOFF_GROW_ROUNDS)
+    assert ok and ref_ok
+    assert np.array_equal(out, ref)
+    assert len(find_self_intersections(out, f)) == 0
+    assert len(calls) >= 2  # crossings were found and put back
+    assert max(calls[1:]) < calls[0] / 4  # later rounds test only what was put back

@@ -151,17 +151,21 @@ def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int
     fn_before = face_normals(old, faces[sub])
     bad_faces = 0
     ring = 0
+    # Vertices whose faces the exact test has not seen where they are now. ``old`` is free of
+    # intersections, so only faces that moved can make one; after a test, every pair it did
+    # not report is clean, and a pair can only start crossing when one of its faces moves
+    # again (is put back): the next test needs just the faces of the vertices put back since.
+    unseen = np.any(new != old, axis=1)
     for r in range(rounds + BACKOFF_GROW_ROUNDS):
         bad = np.zeros(len(faces), bool)
         bad[sub] = np.einsum("ij,ij->i", fn_before, face_normals(new, faces[sub])) < 0.0
         if not bad.any():
             if not intersections:
                 return new, True, 0
-            # ``old`` is free of intersections: only faces that moved can make one.
-            moved = np.any(new != old, axis=1)[faces].any(axis=1)
-            pairs = find_self_intersections(new, faces, only=moved)
+            pairs = find_self_intersections(new, faces, only=unseen[faces].any(axis=1))
             if len(pairs) == 0:
                 return new, True, 0
+            unseen[:] = False
             bad[np.unique(pairs)] = True
         bad_faces = int(bad.sum())
         back = np.zeros(len(new), bool)
@@ -170,6 +174,7 @@ def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int
             ring += 1
             for _ in range(ring):
                 back[faces[back[faces].any(axis=1)]] = True
+        unseen |= back & np.any(new != old, axis=1)
         new[back] = old[back]
     return new, False, bad_faces
 
