@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh.operators import sample_field
-from .refine import contrast_reference, edge_crossings
+from .refine import contrast_reference, edge_crossings, sample_profiles
 
 EDGE, PLATE, JOINT, LABEL_ONLY, CAP = 0, 1, 2, 3, 4
 CLASSES = ("edge", "thin plate", "joint", "label only", "cap")
@@ -96,11 +96,14 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
     confidence = np.zeros(n, np.float32)
     normals = None
     if ct_smooth is not None:
-        reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht)
+        profiles = sample_profiles(vertices, faces, ct_smooth, spacing)
+        reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht,
+                                       profiles=profiles)
         level = edge_level if edge_level is not None else (
             0.5 if not np.isfinite(reference) else ("slab", reference))
         normals, t_cross, ok, contrast = edge_crossings(vertices, faces, ct_smooth, spacing,
-                                                        soft + min_contrast, level, min_contrast)
+                                                        soft + min_contrast, level, min_contrast,
+                                                        profiles=profiles)
         edge = ok & (np.abs(t_cross) <= tolerance)
         offsets = np.abs(t_cross[ok])
         full = reference if np.isfinite(reference) and reference > 0 else np.nan

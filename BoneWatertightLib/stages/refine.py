@@ -73,7 +73,7 @@ def slab_edge_level(ratio, fall=1.0):
     return 0.5 + np.clip(fall, 0.0, 1.0) * (full - 0.5)
 
 
-def _profiles(vertices, faces, ct_smooth, spacing):
+def sample_profiles(vertices, faces, ct_smooth, spacing):
     """CT profiles along the vertex normals: (normals, t (k,), profiles (n, k), peak index,
     peak, valley, inner): inner is the lowest value within SLAB_INNER_MM inside the peak."""
     n = vertex_normals(vertices, faces)
@@ -81,8 +81,7 @@ def _profiles(vertices, faces, ct_smooth, spacing):
     pts = vertices[:, None, :] + t[None, :, None] * n[:, None, :]
     prof = sample_field(ct_smooth, pts.reshape(-1, 3), spacing, order=1,
                         cval=OUTSIDE_HU).reshape(len(vertices), len(t))
-    inner_zone = t <= PEAK_REACH_MM
-    i_peak = np.argmax(np.where(inner_zone[None, :], prof, -np.inf), axis=1)
+    i_peak = np.argmax(prof[:, :int(np.count_nonzero(t <= PEAK_REACH_MM))], axis=1)
     peak = prof[np.arange(len(prof)), i_peak]
     # Valley: the lowest value within 2 mm outside the peak (stops before a neighbour's cortex).
     # The window always reaches 1.5 mm outside the vertex, so a flat interior (peak deep inside)
@@ -97,10 +96,14 @@ def _profiles(vertices, faces, ct_smooth, spacing):
     return n, t, prof, i_peak, peak, valley, inner
 
 
-def contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast=MIN_CONTRAST_HU):
+def contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast=MIN_CONTRAST_HU,
+                       profiles=None):
     """The bone's full cortical contrast (HU) for the blurred-slab model: the
-    SLAB_REFERENCE_PERCENTILE of peak - valley over the vertices whose profile has an edge."""
-    _, _, _, _, peak, valley, _ = _profiles(vertices, faces, ct_smooth, spacing)
+    SLAB_REFERENCE_PERCENTILE of peak - valley over the vertices whose profile has an edge.
+    ``profiles``: :func:`sample_profiles` of these vertices, when already sampled."""
+    if profiles is None:
+        profiles = sample_profiles(vertices, faces, ct_smooth, spacing)
+    _, _, _, _, peak, valley, _ = profiles
     c = peak - valley
     ok = np.isfinite(valley) & (c >= min_contrast) & (peak >= ht)
     return float(np.percentile(c[ok], SLAB_REFERENCE_PERCENTILE)) if ok.any() else np.nan
@@ -165,8 +168,10 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         if fallbacks is not None:
             fallbacks.add("refine", what, count, unit, where)
 
+    first = sample_profiles(vertices, faces, ct_smooth, spacing)  # the level's and pass 1's
     if edge_level is None:
-        reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast)
+        reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast,
+                                       profiles=first)
         edge_level = 0.5 if not np.isfinite(reference) else ("slab", reference)
         if edge_level == 0.5:
             note("no profile has a cortical contrast for the automatic edge level: the half "
@@ -177,7 +182,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         v, _, found, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
                                       smoothness, damping, ops=ops, edge_level=edge_level,
                                       allowed=allowed, plate_targets=plate_targets,
-                                      fallbacks=fallbacks)
+                                      fallbacks=fallbacks, profiles=first if i == 0 else None)
         frac = float(found.mean())
         if progress:
             progress((i + 1) / (passes + VERIFY_ROUNDS), f"edge refinement {i + 1}/{passes}")
@@ -224,7 +229,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
 
 
 def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
-                   min_contrast=MIN_CONTRAST_HU):
+                   min_contrast=MIN_CONTRAST_HU, profiles=None):
     """Where each vertex's CT profile crosses its edge level.
 
     Parameters
@@ -235,6 +240,8 @@ def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
         As :func:`refine_to_edges`.
     edge_level : float or ("slab", full contrast in HU)
         As :func:`refine_pass`.
+    profiles : tuple, optional
+        :func:`sample_profiles` of these vertices, when already sampled.
 
     Returns
     -------
@@ -247,7 +254,9 @@ def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
     contrast : (n,) float array
         Peak - valley (HU).
     """
-    n, t, prof, i_peak, peak, valley, inner = _profiles(vertices, faces, ct_smooth, spacing)
+    if profiles is None:
+        profiles = sample_profiles(vertices, faces, ct_smooth, spacing)
+    n, t, prof, i_peak, peak, valley, inner = profiles
     cols = np.arange(len(t))[None, :]
     with np.errstate(invalid="ignore", divide="ignore"):
         contrast = peak - valley
@@ -272,19 +281,23 @@ def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
                 min_contrast=MIN_CONTRAST_HU, smoothness=REFINE_ALPHA, damping=REFINE_BETA, ops=None,
                 edge_level=None, allowed=None, plate_targets=None,
-                fallbacks=None):
+                fallbacks=None, profiles=None):
     """Return (new vertices, per-vertex shift along the normal, edge found (n,) bool, ok).
 
     The edge points are soft targets of one regularised Laplacian step (as in the deformation)
     followed by the local back-off, so the result never folds or self-intersects.
     ``edge_level``: a number in (0, 1), or ("slab", full contrast in HU) for the blurred-slab
     model's level per vertex; None: that model with the full contrast of these vertices
-    (:func:`contrast_reference`)."""
+    (:func:`contrast_reference`). ``profiles``: :func:`sample_profiles` of ``vertices``, when
+    already sampled."""
+    if profiles is None:
+        profiles = sample_profiles(vertices, faces, ct_smooth, spacing)
     if edge_level is None:
-        reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast)
+        reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast,
+                                       profiles=profiles)
         edge_level = 0.5 if not np.isfinite(reference) else ("slab", reference)
     n, t_cross, ok, _ = edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
-                                       min_contrast)
+                                       min_contrast, profiles=profiles)
     shift = np.where(ok, np.clip(t_cross, -max_shift, max_shift), 0.0)
     w = ok.astype(np.float64)
     if plate_targets is not None:
