@@ -566,3 +566,51 @@ def test_safe_update_tests_only_what_it_put_back_and_still_finds_every_crossing(
     assert len(find_self_intersections(out, f)) == 0
     assert len(calls) >= 2  # crossings were found and put back
     assert max(calls[1:]) < calls[0] / 4  # later rounds test only what was put back
+
+
+def _inside_cases():
+    rng = np.random.default_rng(7)
+    rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    v, f = icosphere(4, 6.0)
+    yield "ellipsoid", v * np.array([1.0, 0.7, 1.6]) + 12.3, f
+    v, f = torus(6, 2, 60, 30)
+    yield "torus", v + 10.0, f
+    yield "oblique torus", v @ rotation.T + 10.0, f
+    v, f = icosphere(2, 5.0)
+    # Vertices on the voxel centres' lines and planes: rays through vertices and edges.
+    yield "grid vertices", np.round((v + 10.0) * 2) / 2, f
+
+
+@pytest.mark.parametrize("case", range(4))
+def test_inside_mask_counts_ray_crossings_as_the_vtk_stencil_does(case):
+    """The ray-parity voxelisation equals VTK's polygon stencil but for voxel centres that lie
+    on the surface (a tie either may call inside), rays through vertices and edges included."""
+    import vtk
+    from BoneWatertightLib.mesh.surface import _ray_parity, _stencil_mask, to_polydata
+
+    name, v, f = list(_inside_cases())[case]
+    shape, h = (40, 40, 40), 0.5
+    ours = _ray_parity(v, f, shape, h, (0.0, 0.0, 0.0))
+    assert ours is not None, name
+    ref = _stencil_mask(Surface(v, f), shape, h, (0.0, 0.0, 0.0))
+    assert ref.sum() > 1000
+    distance = vtk.vtkImplicitPolyDataDistance()
+    distance.SetInput(to_polydata(Surface(v, f), normals=False))
+    for z, y, x in np.argwhere(ours != ref):
+        assert abs(distance.EvaluateFunction(x * h, y * h, z * h)) < 1e-9, name
+
+
+def test_inside_mask_of_an_open_surface_falls_back_to_the_stencil():
+    """A surface with a hole has rays that cross it an odd number of times: the parity is
+    not used and VTK's stencil gives the mask."""
+    from BoneWatertightLib.mesh.surface import _ray_parity, _stencil_mask, inside_mask
+
+    v, f = icosphere(3, 5.0)
+    v = v + 10.2
+    pole = np.argmax(v[:, 0])
+    opened = f[~np.any(f == pole, axis=1)]  # a hole across the rays along x
+    assert _ray_parity(v, opened, (40, 40, 40), 0.5, (0.0, 0.0, 0.0)) is None
+    assert np.array_equal(inside_mask(Surface(v, opened), (40, 40, 40), 0.5),
+                          _stencil_mask(Surface(v, opened), (40, 40, 40), 0.5, (0.0, 0.0, 0.0)))
+    closed = inside_mask(Surface(v, f), (40, 40, 40), 0.5)
+    assert 4 / 3 * np.pi * 5.0 ** 3 * 0.97 < closed.sum() * 0.125 < 4 / 3 * np.pi * 5.0 ** 3

@@ -121,6 +121,10 @@ def to_polydata(surface: Surface, normals: bool = True):
 def inside_mask(surface: Surface, shape: tuple, spacing: float, origin=(0.0, 0.0, 0.0)) -> np.ndarray:
     """The voxel centres inside a closed surface.
 
+    Rays along x through the voxel centres count the faces they cross (:func:`_ray_parity`);
+    where a ray meets the surface an odd number of times (a ray through a vertex of a fold,
+    or a surface that is not closed) VTK's polygon stencil decides instead.
+
     Parameters
     ----------
     surface : Surface
@@ -136,6 +140,75 @@ def inside_mask(surface: Surface, shape: tuple, spacing: float, origin=(0.0, 0.0
     -------
     (z, y, x) bool array of ``shape``
     """
+    shape = tuple(int(v) for v in shape)
+    inside = _ray_parity(surface.vertices, surface.faces, shape, spacing, origin)
+    if inside is None:
+        inside = _stencil_mask(surface, shape, spacing, origin)
+    return inside
+
+
+def _ray_parity(vertices, faces, shape, spacing, origin):
+    """Voxel centres inside a closed surface by the parity of the faces a ray along x crosses
+    before them; None when some ray crosses an odd number of faces.
+
+    A ray through an edge or a vertex counts each crossing once: seen along x, a point on the
+    border of a face's shadow belongs to it only on its top-left edges (the rasteriser's rule),
+    and two faces on either side of a shared edge see it in opposite directions. (z, y, x) bool
+    array of ``shape``, or None.
+    """
+    nz, ny, nx = shape
+    q = (np.asarray(vertices, np.float64) - np.asarray(origin, np.float64)) / float(spacing)
+    f = np.asarray(faces, np.int64)
+    a, b, c = q[f[:, 0]], q[f[:, 1]], q[f[:, 2]]
+    area = (b[:, 1] - a[:, 1]) * (c[:, 2] - a[:, 2]) - (b[:, 2] - a[:, 2]) * (c[:, 1] - a[:, 1])
+    # Faces parallel to the rays have no shadow: their neighbours' edges hold it.
+    keep = area != 0.0
+    a, b, c, area = a[keep], b[keep], c[keep], area[keep]
+    flip = area < 0  # each shadow counter-clockwise in (y, z)
+    b, c = np.where(flip[:, None], c, b), np.where(flip[:, None], b, c)
+    area = np.abs(area)
+    tri_y = np.stack([a[:, 1], b[:, 1], c[:, 1]], axis=1)
+    tri_z = np.stack([a[:, 2], b[:, 2], c[:, 2]], axis=1)
+    j0 = np.maximum(np.ceil(tri_y.min(axis=1)), 0).astype(np.int64)
+    j1 = np.minimum(np.floor(tri_y.max(axis=1)), ny - 1).astype(np.int64)
+    k0 = np.maximum(np.ceil(tri_z.min(axis=1)), 0).astype(np.int64)
+    k1 = np.minimum(np.floor(tri_z.max(axis=1)), nz - 1).astype(np.int64)
+    sy = np.maximum(j1 - j0 + 1, 0)
+    count = sy * np.maximum(k1 - k0 + 1, 0)
+    t = np.repeat(np.arange(len(area)), count)
+    local = np.arange(len(t)) - np.repeat(np.cumsum(count) - count, count)
+    jy = j0[t] + local % sy[t]
+    kz = k0[t] + local // sy[t]
+    py, pz = jy.astype(np.float64), kz.astype(np.float64)
+    corners = (a[t], b[t], c[t])
+    covered = np.ones(len(t), bool)
+    weight = []
+    for e in range(3):
+        u, v = corners[e], corners[(e + 1) % 3]
+        dy, dz = v[:, 1] - u[:, 1], v[:, 2] - u[:, 2]
+        side = dy * (pz - u[:, 2]) - dz * (py - u[:, 1])
+        top_left = (dz < 0) | ((dz == 0) & (dy > 0))
+        covered &= (side > 0) | ((side == 0) & top_left)
+        weight.append(side)  # the barycentric weight of the corner opposite this edge
+    t, jy, kz = t[covered], jy[covered], kz[covered]
+    w = [x[covered] / area[t] for x in weight]
+    x = w[1] * a[t, 0] + w[2] * b[t, 0] + w[0] * c[t, 0]
+    ray = kz * ny + jy
+    if np.any(np.bincount(ray, minlength=nz * ny) % 2):
+        return None
+    # A crossing at x toggles every voxel centre beyond it (none beyond the grid): the running
+    # exclusive-or along each ray.
+    first = np.maximum(np.floor(x).astype(np.int64) + 1, 0)
+    beyond = first >= nx
+    cell, times = np.unique(ray[~beyond] * nx + first[~beyond], return_counts=True)
+    toggles = np.zeros(nz * ny * nx, np.uint8)
+    toggles[cell] = times & 1
+    inside = np.bitwise_xor.accumulate(toggles.reshape(nz * ny, nx), axis=1)
+    return inside.view(bool).reshape(nz, ny, nx)
+
+
+def _stencil_mask(surface: Surface, shape: tuple, spacing: float, origin) -> np.ndarray:
+    """:func:`inside_mask` by VTK's polygon stencil (slices the surface at every z)."""
     import vtk
     from vtk.util import numpy_support as ns
 
