@@ -339,6 +339,9 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
     occ = inside_mask(surface, tuple(int(v) for v in dims[::-1]), h, lo)
     lab, n = ndimage.label(occ)
     if n == 0:
+        if np.ptp(surface.vertices, axis=0).min() < 2 * h:
+            # No grid centre inside a surface thinner than two grid steps: too small.
+            raise _too_small(edge_length, 0)
         raise ReconstructionError("Remeshing lost the surface (empty rasterisation).")
     if n > 1:
         sizes = np.bincount(lab.ravel())
@@ -356,11 +359,15 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         out = _fill_tunnels(out, field, lo, h, fusion, smooth_iterations)
     if out is None or out.n_faces < MIN_REMESH_FACES:
         # A Poisson surface only a few grid steps across smooths away below the 0.5 level.
-        raise ReconstructionError(
-            f"Remeshing M0 at edge length {edge_length:g} mm left {out.n_faces if out else 0} "
-            "triangles: the bone is too small for that edge length. Use a smaller edge_length "
-            "(or leave it on auto) and a finer resample spacing.")
+        raise _too_small(edge_length, out.n_faces if out else 0)
     return out
+
+
+def _too_small(edge_length: float, n_faces: int) -> ReconstructionError:
+    return ReconstructionError(
+        f"Remeshing M0 at edge length {edge_length:g} mm left {n_faces} triangles: the bone is "
+        "too small for that edge length. Use a smaller edge_length (or leave it on auto) and a "
+        "finer resample spacing.")
 
 
 def _carve(field_zyx: np.ndarray, lo, h: float, fusion: Fusion) -> np.ndarray:
