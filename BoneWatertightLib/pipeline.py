@@ -783,7 +783,7 @@ def territory_stage(run: _Run, ws: Workspace, bones: dict) -> None:
         if len(bones) > 1 or ws.fixed:
             ws.territories = _contacts.territories(
                 {k: (b.m0.vertices, b.m0.faces) for k, b in bones.items()}, ws.fixed,
-                ws.labels.shape, ws.d)
+                ws.labels.shape, ws.d, threads=run.threads)
 
 
 def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
@@ -874,7 +874,8 @@ def contact_stage(run: _Run, ws: Workspace, bones: dict) -> None:
         history = _resolve_with_retries(surfaces, ws.fixed, ws.labels.shape, ws.d,
                                         run.params.min_gap, sub,
                                         {k: b.fallbacks for k, b in bones.items()},
-                                        {k: b.name for k, b in bones.items()})
+                                        {k: b.name for k, b in bones.items()},
+                                        threads=run.threads)
         for k, b in bones.items():
             b.vertices = surfaces[k][0]
             b.contacts = {"passes": [{"moved": rec[k][0], "still_closer_than_gap": rec[k][1]}
@@ -891,15 +892,17 @@ def contact_stage(run: _Run, ws: Workspace, bones: dict) -> None:
 
 
 def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, min_gap: float,
-                          progress: Progress, fallbacks: dict, names: dict) -> list:
+                          progress: Progress, fallbacks: dict, names: dict,
+                          threads: int = 1) -> list:
     """stages.contacts.resolve_contacts on ``surfaces`` ({key: [vertices, faces]}, updated
     in place); the fields are voxel-accurate and the exact test decides: pairs that still
     cross get more passes with a wider margin, and a sub-voxel sliver left after those is
     moved apart exactly. Both are noted in ``fallbacks`` ({key: FallbackLog}; ``names``:
-    {key: name}). Returns the passes' records."""
+    {key: name}; ``threads``: bones worked at once). Returns the passes' records."""
     cache = {}
     history = _contacts.resolve_contacts(surfaces, fixed, shape, d, min_gap,
-                                         progress=progress.stage(0.0, 0.6), cache=cache)
+                                         progress=progress.stage(0.0, 0.6), cache=cache,
+                                         threads=threads)
     for extra in range(1, CONTACT_RETRIES + 1):
         crossing = _crossing_pairs(surfaces)
         if not crossing:
@@ -913,7 +916,7 @@ def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, m
         # The other bones hold their place (their voxelised surfaces are cached).
         history += _contacts.resolve_contacts(surfaces, fixed, shape, d, min_gap + extra * d,
                                               progress=progress.stage(0.6, 1.0),
-                                              active=involved, cache=cache)
+                                              active=involved, cache=cache, threads=threads)
     else:
         # Still crossing after the field passes: a sub-voxel sliver; moved apart exactly.
         for a, b in _crossing_pairs(surfaces):

@@ -62,7 +62,7 @@ def signed_distance(mask: np.ndarray, box: tuple, spacing: float) -> np.ndarray:
 
 
 def territories(surfaces: dict, fixed: dict, shape: tuple, spacing: float, *,
-                only=None, cache: dict | None = None) -> dict:
+                only=None, cache: dict | None = None, threads: int = 1) -> dict:
     """phi per reconstructed bone from ``surfaces`` ({key: (vertices, faces)} grid mm) and the
     owned voxels of the bones that are not reconstructed (``fixed``: {key: bool mask}).
 
@@ -71,53 +71,79 @@ def territories(surfaces: dict, fixed: dict, shape: tuple, spacing: float, *,
     around it, so n bones cost n windows, not n^2 whole grids. None: no other bone is near.
     ``only``: the keys whose phi is wanted (default: all of ``surfaces``). ``cache``: a dict
     kept between calls; a surface whose vertex array is the same object as at the last call is
-    not voxelised again."""
+    not voxelised again. ``threads``: bones worked at once (the same fields with any number)."""
+    masks = _territory_masks(surfaces, fixed, shape, spacing, cache, threads)
+    keys = list(surfaces if only is None else only)
+    return dict(zip(keys, _map(lambda k: _phi(k, masks, shape, spacing), keys, threads)))
+
+
+def _map(work, keys: list, threads: int) -> list:
+    """[work(k) for k in keys], on up to ``threads`` threads (scipy.ndimage, edt and numpy
+    release the GIL in their loops)."""
+    if threads <= 1 or len(keys) <= 1:
+        return [work(k) for k in keys]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(threads, len(keys)), thread_name_prefix="contacts") as pool:
+        return list(pool.map(work, keys))
+
+
+def _territory_masks(surfaces: dict, fixed: dict, shape: tuple, spacing: float,
+                     cache: dict | None, threads: int) -> dict:
+    """{key: (box, mask)}: each surface voxelised around itself (cached by vertex array, see
+    :func:`territories`) and each fixed bone's owned voxels in their box."""
+    todo = []
     masks = {}
     for k, (v, f) in surfaces.items():
         hit = cache.get(k) if cache is not None else None
         if hit is not None and hit[0] is v:
             masks[k] = hit[1]
         else:
-            masks[k] = _voxelize_local(v, f, shape, spacing)
-            if cache is not None:
-                cache[k] = (v, masks[k])
+            todo.append(k)
+    done = _map(lambda k: _voxelize_local(surfaces[k][0], surfaces[k][1], shape, spacing), todo,
+                threads)
+    for k, entry in zip(todo, done):
+        masks[k] = entry
+        if cache is not None:
+            cache[k] = (surfaces[k][0], entry)
     for k, m in fixed.items():
         if m is not None and m.any():
             box = bbox_slices(m, 0)
             masks[k] = (box, m[box])
+    return masks
+
+
+def _phi(k, masks: dict, shape: tuple, spacing: float):
+    """Bone k's entry of :func:`territories`: (x-y-z origin of its box in grid mm, phi
+    (z, y, x) float32), or None where no other bone comes near."""
     pad = int(np.ceil(SDF_PAD_MM / spacing)) + 2
-    out = {}
-    for k in (surfaces if only is None else only):
-        box_k, sub_k = masks[k]
-        if not sub_k.any():
-            out[k] = None
-            continue
-        win = _window(box_k, shape, spacing, pad)
-        mine = _paste(masks[k], win)
-        zone = near(mine, spacing, SDF_PAD_MM)
-        others = [_paste(m, win) for j, m in masks.items() if j != k]
-        others = [m for m in others if m is not None]
-        close = [m & zone for m in others]
-        if not any(c.any() for c in close):
-            out[k] = None
-            continue
-        union = np.zeros(mine.shape, bool)
-        for c in close:
-            union |= c
-        box = bbox_slices(union, pad)
-        own = signed_distance(mine, box, spacing)
-        # The nearest other bone's signed distance, as that of the near bones' union: the
-        # same outside them (the distance to the nearest one); inside one, the depth in the
-        # union (deeper only where two others touch, far inside them). One transform instead
-        # of one per neighbour.
-        near_others = np.zeros(mine.shape, bool)
-        for m, c in zip(others, close):
-            if c.any():
-                near_others |= m
-        nearest = signed_distance(near_others, box, spacing)
-        start = np.array([w.start + b.start for w, b in zip(win, box)][::-1], dtype=np.float64)
-        out[k] = (start * spacing, ((own - nearest) * 0.5).astype(np.float32))
-    return out
+    box_k, sub_k = masks[k]
+    if not sub_k.any():
+        return None
+    win = _window(box_k, shape, spacing, pad)
+    mine = _paste(masks[k], win)
+    zone = near(mine, spacing, SDF_PAD_MM)
+    others = [_paste(m, win) for j, m in masks.items() if j != k]
+    others = [m for m in others if m is not None]
+    close = [m & zone for m in others]
+    if not any(c.any() for c in close):
+        return None
+    union = np.zeros(mine.shape, bool)
+    for c in close:
+        union |= c
+    box = bbox_slices(union, pad)
+    own = signed_distance(mine, box, spacing)
+    # The nearest other bone's signed distance, as that of the near bones' union: the same
+    # outside them (the distance to the nearest one); inside one, the depth in the union
+    # (deeper only where two others touch, far inside them). One transform instead of one per
+    # neighbour.
+    near_others = np.zeros(mine.shape, bool)
+    for m, c in zip(others, close):
+        if c.any():
+            near_others |= m
+    nearest = signed_distance(near_others, box, spacing)
+    start = np.array([w.start + b.start for w, b in zip(win, box)][::-1], dtype=np.float64)
+    return start * spacing, ((own - nearest) * 0.5).astype(np.float32)
 
 
 def _voxelize_local(vertices: np.ndarray, faces: np.ndarray, shape: tuple,
@@ -266,12 +292,14 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
 def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, min_gap: float,
                      passes: int = CONTACT_PASSES, progress=None,
                      pinned: dict | None = None, active=None,
-                     cache: dict | None = None) -> list:
+                     cache: dict | None = None, threads: int = 1) -> list:
     """Keep the surfaces (dict key -> [vertices, faces], updated in place) apart by min_gap.
 
     ``pinned``: key -> (n,) bool of vertices that never move. ``active``: the keys that may
     move (default all; the others only hold their place). ``cache``: a dict kept between
-    calls on the same surfaces (voxelised surfaces, Laplacians). Returns one record per pass:
+    calls on the same surfaces (voxelised surfaces, Laplacians). ``threads``: bones worked at
+    once within a pass (each bone's field is made from the surfaces as the pass found them,
+    so the result does not depend on it). Returns one record per pass:
     {key: (moved, still beyond, moves discarded by the self-intersection check, vertices
     relaxed where moves kept flipping faces)}.
 
@@ -285,17 +313,25 @@ def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, 
     operators = cache.setdefault("operators", {})
     active = list(surfaces) if active is None else list(active)
     for p in range(passes):
-        phis = territories({k: (v, f) for k, (v, f) in surfaces.items()}, fixed, shape, spacing,
-                           only=active, cache=masks)
-        record = {}
-        for k, entry in phis.items():
+        fields = _territory_masks({k: (v, f) for k, (v, f) in surfaces.items()}, fixed, shape,
+                                  spacing, masks, threads)
+        for k in active:
+            operators.setdefault(k, {})
+
+        def work(k):
+            entry = _phi(k, fields, shape, spacing)
             if entry is None:
-                continue
+                return None
             v, f = surfaces[k]
             # half a voxel more: the fields are voxelised
-            v2, beyond, moved, discarded, relaxed = enforce(
-                v, f, entry, spacing, min_gap + 0.5 * spacing, pinned=(pinned or {}).get(k),
-                operators=operators.setdefault(k, {}))
+            return enforce(v, f, entry, spacing, min_gap + 0.5 * spacing,
+                           pinned=(pinned or {}).get(k), operators=operators[k])
+
+        record = {}
+        for k, out in zip(active, _map(work, active, threads)):
+            if out is None:
+                continue
+            v2, beyond, moved, discarded, relaxed = out
             surfaces[k][0] = v2
             record[k] = (moved, beyond, discarded, relaxed)
         history.append(record)
