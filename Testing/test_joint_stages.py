@@ -324,6 +324,24 @@ def test_resolve_contacts_separates_a_jagged_surface(seed):
     assert sum(rec[1][3] for rec in history if 1 in rec) > 0
 
 
+def test_resolve_contacts_gives_the_same_surfaces_on_two_threads():
+    """Bones of one pass worked at once: each field is made from the surfaces as the pass
+    found them, so two threads move every vertex exactly as one does."""
+    shape = (40, 40, 75)
+    spheres = [_grid_sphere(8.0, (20.0, 20.0, 21.0)), _grid_sphere(8.0, (20.0, 20.0, 36.0)),
+               _grid_sphere(7.0, (20.0, 20.0, 50.0))]  # a-b overlap 1 mm, b-c 1 mm
+    out = []
+    for threads in (1, 2):
+        surfaces = {k + 1: [v.copy(), f] for k, (v, f) in enumerate(spheres)}
+        history = contacts.resolve_contacts(surfaces, {}, shape, 1.0, 0.3, passes=3,
+                                            threads=threads)
+        out.append((surfaces, history))
+    (one, h1), (two, h2) = out
+    assert h1 == h2 and sum(rec[0] for rec in h1[0].values()) > 0
+    for k in one:
+        assert np.array_equal(one[k][0], two[k][0])
+
+
 def test_resolve_contacts_moves_only_the_active_bones_and_reuses_its_cache(monkeypatch):
     """``active``: the other surfaces hold their place (the retry of a crossing pair beside
     bones that are done); a later pass works only on the bones still beyond their midway
