@@ -215,6 +215,28 @@ def test_unlabelled_bone_beyond_a_joint_stays_a_neighbour():
     assert (row[31:54] != 1).all()  # never bone 1 across the joint space
 
 
+@pytest.mark.parametrize("hidden", [False, True])
+def test_a_label_over_an_unlabelled_neighbours_rim_beyond_a_seen_joint_space(hidden):
+    """A coarse label of bone 1 reaches across the joint space into the wall of an unlabelled
+    neighbour (a rough femur label over the cup's rim). Where the CT shows the joint space,
+    that wall is the neighbour's: its strong voxels are no markers of bone 1 (they were, and
+    the surface grew a flap into the cup). Where the joint is hidden, the label decides."""
+    ct, labels = _two_blocks(shift_label=0, gap=2)
+    labels[labels == 2] = 0
+    labels[4:20, 4:20, 28:31] = 1  # over the joint space (x 28, 29) and block 2's wall (x 30)
+    if hidden:
+        ct[4:20, 4:20, 28:30] = 1200.0
+    own = ownership.compute_ownership(ct, labels, 1, 1.0, h0=400.0, ht=200.0, theta_max=2500.0,
+                                      soft=40.0, contrast=1160.0, coarseness=1.0, band_mm=3.0)
+    row = own.owner[12, 12]
+    assert (row[6:28] == 1).all(), row[24:36]
+    if hidden:
+        assert (row[28:31] == 1).all() and own.info["rim_voxels_unmarked"] == 0, row[24:36]
+    else:
+        assert (row[30:54] != 1).all(), row[24:36]
+        assert own.info["rim_voxels_unmarked"] > 0
+
+
 @pytest.mark.parametrize("neighbour", [False, True])
 def test_merged_bone_counts_as_fused_only_where_it_continues_into_unlabelled_bone(neighbour):
     """A plate of bone 1 that its label leaves out (an AI label misses a thin blade) is merged

@@ -493,10 +493,11 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     if progress:
         progress(0.5, "bone evidence")
     other = n + 1
-    markers, n_pieces = _markers(fg, strong, labels, seg, other, spacing)
     quantum = max(VALLEY_QUANTUM_MIN_HU, VALLEY_QUANTUM_FRACTION * contrast)
     radius = 0.5 * VALLEY_GAP_MM + spacing
     levels = np.floor(np.clip(valley_map(ct, spacing, radius), 0, None) / quantum).astype(np.int32)
+    markers, n_pieces, dropped = _markers(fg, strong, labels, seg, other, spacing,
+                                          seen=~strong & (levels >= SEEN_VALLEY_QUANTA))
     if progress:
         progress(0.6, "flooding from the markers")
     ws = flood_from_markers(markers, levels, fg)
@@ -536,6 +537,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             "contact_zone_mm": r_contact, "valley_quantum_hu": quantum, "label_level_hu": t_low,
             "foreground_voxels": int(fg.sum()), "unlabelled_pieces": n_pieces,
             "joint_space_voxels": int(joint_space.sum()), "joint_cuts": cut_info,
+            "rim_voxels_unmarked": dropped,
             "unsupported": {int(k): v for k, v in seg.unsupported_info.items()},
             "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
                                    "contact_mm2": round(s, 1), "ml": round(merged_ml[p], 2),
@@ -619,14 +621,30 @@ def _bone_foreground(ct, labelled, cores, *, h0, ht, t_low, theta_max) -> tuple:
     return fg, strong
 
 
-def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float) -> tuple:
+def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float,
+             seen=None) -> tuple:
     """The flooding's markers (uint16): each label's strong bone and core outside the contact
     zones, and the unlabelled pieces of strong bone outside every region (of at least
-    MIN_OTHER_PIECE_MM3) numbered from ``other``; returns (markers, number of pieces)."""
-    markers = np.where(fg & strong & (labels > 0) & ~seg.contact, labels, 0).astype(np.uint16)
+    MIN_OTHER_PIECE_MM3) numbered from ``other``; returns (markers, number of pieces, voxels
+    of label bone that are no marker: see :func:`_beyond_a_joint_space`).
+
+    ``seen``: (z, y, x) bool, the voxels of a seen joint space (below H0 in a valley of
+    SEEN_VALLEY_QUANTA or more), or None."""
+    mine = fg & strong & (labels > 0) & ~seg.contact
+    om = fg & strong & ~seg.union
+    dropped = 0
+    if seen is not None:
+        beyond = _beyond_a_joint_space(fg, strong, labels, seg, om, seen)
+        dropped = int(np.count_nonzero(beyond & mine))
+        mine &= ~beyond
+    markers = np.where(mine, labels, 0).astype(np.uint16)
     core_marker = (seg.cores > 0) & ~seg.contact
+    if seen is not None:
+        # A joint space the CT shows is no marker even deep in a label (the flood decides it;
+        # a pore of a trabecular core is claimed at its level by the bone around it).
+        core_marker &= ~seen & ~beyond
     markers[core_marker] = seg.cores[core_marker]
-    om = fg & strong & ~seg.union & (markers == 0)
+    om &= markers == 0
     olab, no = ndimage.label(om, structure=SIX)
     n_pieces = 0
     if no:
@@ -637,7 +655,48 @@ def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float) -
         remap = np.zeros(no + 1, np.uint32)
         remap[ok] = np.arange(n_pieces) + other
         markers[om] = remap[olab[om]].astype(np.uint16)
-    return markers, n_pieces
+    return markers, n_pieces, dropped
+
+
+def _beyond_a_joint_space(fg, strong, labels, seg: _LabelParts, om, seen) -> np.ndarray:
+    """Bone inside a label that a joint space the CT shows separates from the label's core,
+    and that continues (as strong bone) into unlabelled bone outside every region: a
+    neighbour's rim that a coarse label covers (the cup's rim under a rough femur label).
+    Its strong voxels are no markers of the label, so the flooding gives it to the bone it
+    continues into unless the label's own bone reaches it first over the valley map.
+    (z, y, x) bool."""
+    out = np.zeros(labels.shape, bool)
+    if not om.any():
+        return out
+    # Strong bone that continues into unlabelled strong bone outside every region.
+    slab, ns = ndimage.label(fg & strong, structure=SIX)
+    shared = np.zeros(ns + 1, bool)
+    shared[np.unique(slab[om])] = True
+    shared[0] = False
+    for i, (sl, _) in seg.regions.items():
+        lab_i = labels[sl] == i
+        # The core less the seen joint space; its largest part anchors the label (a label
+        # that reaches across a joint space deeper than its core depth has a core beyond it).
+        anchor, na = ndimage.label((seg.cores[sl] == i) & ~seen[sl], structure=SIX)
+        if na == 0:
+            continue
+        sizes = np.bincount(anchor.ravel())
+        sizes[0] = 0
+        # The label's bone evidence less the seen joint space: the parts the anchor reaches.
+        parts, npart = ndimage.label(lab_i & fg[sl] & ~seen[sl], structure=SIX)
+        if npart < 2:
+            continue
+        reached = np.zeros(npart + 1, bool)
+        reached[np.unique(parts[anchor == int(np.argmax(sizes))])] = True
+        reached[0] = True
+        # A part cut off whose strong bone continues into unlabelled bone: a neighbour's.
+        strong_sl = slab[sl]
+        foreign = np.zeros(npart + 1, bool)
+        hit = ~reached[parts] & shared[strong_sl]
+        foreign[np.unique(parts[hit])] = True
+        foreign[0] = False
+        out[sl] |= foreign[parts]
+    return out
 
 
 def _foreign_pieces(faces: dict, merged: set, kept: set) -> set:
