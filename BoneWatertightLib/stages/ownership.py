@@ -675,19 +675,17 @@ def _beyond_a_joint_space(fg, strong, labels, seg: _LabelParts, om, seen) -> np.
     shared[0] = False
     for i, (sl, _) in seg.regions.items():
         lab_i = labels[sl] == i
-        # The core less the seen joint space; its largest part anchors the label (a label
-        # that reaches across a joint space deeper than its core depth has a core beyond it).
-        anchor, na = ndimage.label((seg.cores[sl] == i) & ~seen[sl], structure=SIX)
-        if na == 0:
+        core_i = seg.cores[sl] == i
+        if not core_i.any():
             continue
-        sizes = np.bincount(anchor.ravel())
-        sizes[0] = 0
-        # The label's bone evidence less the seen joint space: the parts the anchor reaches.
+        # The label's bone evidence less the seen joint space: the parts its core reaches.
+        # (Only the parts with no core: the largest core part as the only anchor took a
+        # femoral head whose core the marrow's valleys cut off from the shaft's.)
         parts, npart = ndimage.label(lab_i & fg[sl] & ~seen[sl], structure=SIX)
         if npart < 2:
             continue
         reached = np.zeros(npart + 1, bool)
-        reached[np.unique(parts[anchor == int(np.argmax(sizes))])] = True
+        reached[np.unique(parts[core_i])] = True
         reached[0] = True
         # A part cut off whose strong bone continues into unlabelled bone: a neighbour's.
         strong_sl = slab[sl]
