@@ -85,6 +85,9 @@ CONTACT_RETRIES = 3
 # filters, interpolation and sorting on this project's volumes). At most this many, one per
 # CPU, and only as many as max_memory_gb holds (bone_schedule).
 MAX_BONE_THREADS = 4
+# The exact gap step aims this far (mm) beyond min_gap: the pair check measures it again on the
+# capped surfaces in physical coordinates.
+GAP_MARGIN_MM = 0.005
 # How often the calling thread passes the bones' progress on (s) while they run in threads.
 RELAY_POLL_S = 0.2
 # HT crossings within this distance (mm) of W_H0 are left out of B* (see _bone_surface).
@@ -876,10 +879,13 @@ def contact_stage(run: _Run, ws: Workspace, bones: dict) -> None:
                                         {k: b.fallbacks for k, b in bones.items()},
                                         {k: b.name for k, b in bones.items()},
                                         threads=run.threads)
+        exact = _keep_gaps_exact(surfaces, run.params.min_gap)
         for k, b in bones.items():
             b.vertices = surfaces[k][0]
             b.contacts = {"passes": [{"moved": rec[k][0], "still_closer_than_gap": rec[k][1]}
                                      for rec in history if k in rec]}
+            if k in exact:
+                b.contacts["exact_gap"] = exact[k]
             discarded = sum(rec[k][2] for rec in history if k in rec)
             if discarded:
                 b.fallbacks.add("contacts", "a contact pass failed the self-intersection check: "
@@ -929,6 +935,31 @@ def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, m
                                  f"with {names[other]}")
             surfaces[a][0], surfaces[b][0] = va, vb
     return history
+
+
+def _keep_gaps_exact(surfaces: dict, min_gap: float) -> dict:
+    """stages.contacts.keep_gap_exact on every pair of ``surfaces`` ({key: [vertices,
+    faces]}, updated in place) whose boxes come within the gap and the search distance;
+    returns {key: {"moved": vertices moved, "with": {other key: smallest gap left mm}}}."""
+    reach = min_gap + _contacts.GAP_SEARCH_MM
+    boxes = {k: (v.min(axis=0) - reach, v.max(axis=0) + reach) for k, (v, _) in surfaces.items()}
+    out = {}
+    keys = list(surfaces)
+    for i, a in enumerate(keys):
+        for b in keys[i + 1:]:
+            if np.any(boxes[a][1] < boxes[b][0]) or np.any(boxes[b][1] < boxes[a][0]):
+                continue
+            va, vb, na, nb, gap = _contacts.keep_gap_exact(
+                surfaces[a][0], surfaces[a][1], surfaces[b][0], surfaces[b][1],
+                min_gap + GAP_MARGIN_MM)
+            if gap is None:
+                continue
+            surfaces[a][0], surfaces[b][0] = va, vb
+            for k, other, n in ((a, b, na), (b, a, nb)):
+                rec = out.setdefault(k, {"moved": 0, "with": {}})
+                rec["moved"] += n
+                rec["with"][other] = round(gap, 4)
+    return out
 
 
 def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,

@@ -346,6 +346,29 @@ def test_resolve_contacts_separates_a_jagged_surface(seed):
     assert sum(rec[1][3] for rec in history if 1 in rec) > 0
 
 
+def test_keep_gap_exact_opens_a_gap_the_fields_left_too_small():
+    """Two spheres 0.05 mm apart (the voxel-accurate fields leave such gaps): the exact step
+    opens the gap to the bound, moving only vertices near the contact, and keeps both
+    surfaces valid."""
+    a = _grid_sphere(8.0, (20.0, 20.0, 20.0))
+    b = _grid_sphere(8.0, (20.0, 20.0, 36.05))
+    before = contacts.pair_report(a[0], a[1], b[0], b[1])
+    assert before["crossing_face_pairs"] == 0 and before["min_gap_mm"] < 0.1
+    va, vb, na, nb, gap = contacts.keep_gap_exact(a[0], a[1], b[0], b[1], 0.3)
+    after = contacts.pair_report(va, a[1], vb, b[1])
+    assert after["crossing_face_pairs"] == 0 and after["min_gap_mm"] >= 0.3 - 1e-6
+    assert gap >= 0.3 - 1e-6 and 0 < na < len(va) // 4 and 0 < nb < len(vb) // 4
+    for v, f in ((va, a[1]), (vb, b[1])):
+        assert check_surface(v, f).ok
+    far = a[0][:, 2] < 24.0
+    assert np.array_equal(va[far], a[0][far])
+    # already apart: nothing moves; out of reach: no gap to report
+    _, _, na, nb, gap = contacts.keep_gap_exact(va, a[1], vb, b[1], 0.3)
+    assert na == nb == 0 and gap >= 0.3 - 1e-6
+    c = _grid_sphere(5.0, (20.0, 20.0, 60.0))
+    assert contacts.keep_gap_exact(a[0], a[1], c[0], c[1], 0.3)[4] is None
+
+
 def test_resolve_contacts_gives_the_same_surfaces_on_two_threads():
     """Bones of one pass worked at once: each field is made from the surfaces as the pass
     found them, so two threads move every vertex exactly as one does."""

@@ -48,6 +48,14 @@ ENFORCE_RELAX_RINGS = 2
 CONTACT_PASSES = 3
 # Beyond a field's box no other bone is near: phi reads -FAR there (always on the bone's side).
 FAR = 1e3
+# Exact gap (keep_gap_exact): each vertex closer than the gap to the other surface moves in by
+# GAP_SHARE of its shortfall + GAP_EXTRA_MM (both surfaces move, so a little over half), at
+# most GAP_ROUNDS times; candidates lie within the gap + GAP_SEARCH_MM of the other's vertices
+# (more than an edge: the nearest point of a triangle can be far from its corners).
+GAP_SHARE = 0.6
+GAP_EXTRA_MM = 0.01
+GAP_ROUNDS = 6
+GAP_SEARCH_MM = 2.0
 
 
 def voxelize(vertices: np.ndarray, faces: np.ndarray, shape: tuple, spacing: float) -> np.ndarray:
@@ -376,6 +384,63 @@ def push_apart_exact(va, fa, vb, fb, spacing: float, rounds: int = EXACT_ROUNDS)
     pairs = find_self_intersections(np.vstack([va, vb]), np.vstack([fa, fb + len(va)]))
     ok = not len(pairs) or not ((pairs[:, 0] < len(fa)) != (pairs[:, 1] < len(fa))).any()
     return va, vb, ok
+
+
+def keep_gap_exact(va, fa, vb, fb, gap: float, rounds: int = GAP_ROUNDS):
+    """Move the vertices of each surface that lie closer than ``gap`` to the other inward
+    along their normals, by a share of the shortfall measured exactly (point to triangle),
+    each step checked for flips and self-intersections, until no vertex of one is closer
+    than ``gap`` to the other or ``rounds`` are used. The voxel-accurate fields of
+    :func:`resolve_contacts` leave pairs up to a voxel closer than ``gap``; this closes the
+    rest. The surfaces must not cross.
+
+    Returns (va, vb, moved vertices of a, moved vertices of b, smallest gap left mm or None
+    where no vertex of one is within ``gap`` + GAP_SEARCH_MM of the other)."""
+    va = np.array(va, dtype=np.float64)
+    vb = np.array(vb, dtype=np.float64)
+    start_a, start_b = va.copy(), vb.copy()
+    smallest = None
+    for r in range(rounds + 1):
+        da, ia = _close_vertices(va, vb, fb, gap)
+        db, ib = _close_vertices(vb, va, fa, gap)
+        found = np.concatenate([da, db])
+        smallest = float(found.min()) if len(found) else None
+        short_a, short_b = da < gap, db < gap
+        if r == rounds or not (short_a.any() or short_b.any()):
+            break
+        out = []
+        for v, f, idx, d, short in ((va, fa, ia, da, short_a), (vb, fb, ib, db, short_b)):
+            if not short.any():
+                out.append(v)
+                continue
+            new = v.copy()
+            step = GAP_SHARE * (gap - d[short]) + GAP_EXTRA_MM
+            new[idx[short]] -= step[:, None] * vertex_normals(v, f)[idx[short]]
+            new, _, _ = safe_update(v, new, f, intersections=True)
+            out.append(new)
+        va, vb = out
+    moved_a = int(np.any(va != start_a, axis=1).sum())
+    moved_b = int(np.any(vb != start_b, axis=1).sum())
+    return va, vb, moved_a, moved_b, smallest
+
+
+def _close_vertices(v, other_v, other_f, gap: float):
+    """(distances, indices) of the vertices of ``v`` within ``gap`` + GAP_SEARCH_MM of the
+    vertices of the other surface: their exact distance to its triangles (mm)."""
+    import vtk
+    from vtk.util import numpy_support as ns
+
+    if not len(v) or not len(other_v):
+        return np.zeros(0), np.zeros(0, np.int64)
+    near_v, _ = cKDTree(other_v).query(v, distance_upper_bound=gap + GAP_SEARCH_MM)
+    idx = np.flatnonzero(np.isfinite(near_v))
+    if not len(idx):
+        return np.zeros(0), idx
+    dist = vtk.vtkImplicitPolyDataDistance()
+    dist.SetInput(to_polydata(Surface(other_v, other_f), normals=False))
+    values = vtk.vtkDoubleArray()
+    dist.FunctionValue(ns.numpy_to_vtk(np.ascontiguousarray(v[idx]), deep=True), values)
+    return np.abs(ns.vtk_to_numpy(values)).astype(np.float64), idx
 
 
 def _faces_meeting(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
