@@ -110,6 +110,10 @@ SUPPORT_MIN_FRACTION = 0.3
 # 3 mm-stolen labels refused -> 1.88 and 1.11 -> 0.70, rough 2.61 -> 2.46 and 0.59 -> 0.53, AI
 # 0.50 -> 0.51 and 0.41 -> 0.44; anatomical phantoms (3 mm): the hip bone's fin into the
 # sacro-iliac joint max 7.70 -> 3.74 mm (seed 1), the femur's max 13.2 -> 2.34 mm (seed 2).
+# A label's part cut off from its core by a seen joint space, whose strong bone continues into
+# unlabelled bone, gives no markers (a neighbour's rim under a coarse label) when at least this
+# fraction of its shell within the label is that joint space (see _beyond_a_joint_space).
+RIM_JOINT_FRACTION = 0.5
 CUT_SCALE = 100.0
 CUT_LABEL_WEIGHT = 30.0
 CUT_LABEL_CAP = 1.5
@@ -687,11 +691,23 @@ def _beyond_a_joint_space(fg, strong, labels, seg: _LabelParts, om, seen) -> np.
         reached = np.zeros(npart + 1, bool)
         reached[np.unique(parts[core_i])] = True
         reached[0] = True
-        # A part cut off whose strong bone continues into unlabelled bone: a neighbour's.
-        strong_sl = slab[sl]
-        foreign = np.zeros(npart + 1, bool)
-        hit = ~reached[parts] & shared[strong_sl]
-        foreign[np.unique(parts[hit])] = True
+        # A part cut off whose strong bone continues into unlabelled bone is a neighbour's
+        # when a joint space bounds it: most of its shell inside the label is the seen joint
+        # space (a sheet of cartilage between two cortices). A piece of a thin plate that the
+        # holes of its lace cut off lies in soft tissue the label covers instead.
+        hit = ~reached[parts] & shared[slab[sl]]
+        cand = np.unique(parts[hit])
+        cand = cand[cand > 0]
+        if not len(cand):
+            continue
+        is_cand = np.zeros(npart + 1, bool)
+        is_cand[cand] = True
+        grown = ndimage.grey_dilation(np.where(is_cand[parts], parts, 0), footprint=SIX,
+                                      mode="constant", cval=0)
+        shell = (grown > 0) & (parts == 0) & lab_i
+        total = np.bincount(grown[shell], minlength=npart + 1)
+        joint = np.bincount(grown[shell & seen[sl]], minlength=npart + 1)
+        foreign = is_cand & (joint >= RIM_JOINT_FRACTION * np.maximum(total, 1))
         foreign[0] = False
         out[sl] |= foreign[parts]
     return out
