@@ -387,12 +387,13 @@ def push_apart_exact(va, fa, vb, fb, spacing: float, rounds: int = EXACT_ROUNDS)
 
 
 def keep_gap_exact(va, fa, vb, fb, gap: float, rounds: int = GAP_ROUNDS):
-    """Move the vertices of each surface that lie closer than ``gap`` to the other inward
-    along their normals, by a share of the shortfall measured exactly (point to triangle),
-    each step checked for flips and self-intersections, until no vertex of one is closer
-    than ``gap`` to the other or ``rounds`` are used. The voxel-accurate fields of
-    :func:`resolve_contacts` leave pairs up to a voxel closer than ``gap``; this closes the
-    rest. The surfaces must not cross.
+    """Move the vertices of each surface that lie closer than ``gap`` to the other away from
+    their nearest point on it, by a share of the shortfall measured exactly (point to
+    triangle), each step checked for flips and self-intersections, until no vertex of one is
+    closer than ``gap`` to the other or ``rounds`` are used. A vertex whose move would flip a
+    face (the tip of a spike or fold) has its one-ring relaxed halfway to its mean instead.
+    The voxel-accurate fields of :func:`resolve_contacts` leave pairs up to a voxel closer
+    than ``gap``; this closes the rest. The surfaces must not cross.
 
     Returns (va, vb, moved vertices of a, moved vertices of b, smallest gap left mm or None
     where no vertex of one is within ``gap`` + GAP_SEARCH_MM of the other)."""
@@ -401,22 +402,24 @@ def keep_gap_exact(va, fa, vb, fb, gap: float, rounds: int = GAP_ROUNDS):
     start_a, start_b = va.copy(), vb.copy()
     smallest = None
     for r in range(rounds + 1):
-        da, ia = _close_vertices(va, vb, fb, gap)
-        db, ib = _close_vertices(vb, va, fa, gap)
-        found = np.concatenate([da, db])
+        near = [_close_vertices(va, vb, fb, gap), _close_vertices(vb, va, fa, gap)]
+        found = np.concatenate([d for d, _, _ in near])
         smallest = float(found.min()) if len(found) else None
-        short_a, short_b = da < gap, db < gap
-        if r == rounds or not (short_a.any() or short_b.any()):
+        if r == rounds or smallest is None or smallest >= gap:
             break
         out = []
-        for v, f, idx, d, short in ((va, fa, ia, da, short_a), (vb, fb, ib, db, short_b)):
+        for v, f, (d, idx, away) in ((va, fa, near[0]), (vb, fb, near[1])):
+            short = d < gap
             if not short.any():
                 out.append(v)
                 continue
             new = v.copy()
             step = GAP_SHARE * (gap - d[short]) + GAP_EXTRA_MM
-            new[idx[short]] -= step[:, None] * vertex_normals(v, f)[idx[short]]
+            new[idx[short]] += step[:, None] * away[short]
             new, _, _ = safe_update(v, new, f, intersections=True)
+            stuck = idx[short][np.all(new[idx[short]] == v[idx[short]], axis=1)]
+            if len(stuck):
+                new = _relax_rings(new, f, stuck)
             out.append(new)
         va, vb = out
     moved_a = int(np.any(va != start_a, axis=1).sum())
@@ -424,23 +427,58 @@ def keep_gap_exact(va, fa, vb, fb, gap: float, rounds: int = GAP_ROUNDS):
     return va, vb, moved_a, moved_b, smallest
 
 
+def _relax_rings(v: np.ndarray, f: np.ndarray, seeds: np.ndarray) -> np.ndarray:
+    """``v`` with the one-rings of ``seeds`` (vertex indices; themselves included) moved
+    halfway to the mean of each vertex's one-ring, where that flips no face and makes no
+    self-intersection (else ``v``)."""
+    adjacency = (abs(laplacian(len(v), f)) > 0).astype(np.float64).tocsr()
+    mark = np.zeros(len(v), bool)
+    mark[seeds] = True
+    ring = _ring_patch(adjacency, mark, 1)
+    degree = np.asarray(adjacency.sum(axis=1)).ravel()
+    mean = (adjacency @ v) / np.maximum(degree, 1)[:, None]
+    relaxed = v.copy()
+    relaxed[ring] = 0.5 * (v[ring] + mean[ring])
+    relaxed, ok, _ = safe_update(v, relaxed, f, intersections=True)
+    return relaxed if ok else v
+
+
 def _close_vertices(v, other_v, other_f, gap: float):
-    """(distances, indices) of the vertices of ``v`` within ``gap`` + GAP_SEARCH_MM of the
-    vertices of the other surface: their exact distance to its triangles (mm)."""
+    """The vertices of ``v`` within ``gap`` + GAP_SEARCH_MM of the vertices of the other
+    surface: (their exact distance to its triangles (mm), their indices, and for those closer
+    than ``gap`` the unit direction away from their nearest point on it (else 0))."""
     import vtk
     from vtk.util import numpy_support as ns
 
+    empty = (np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3)))
     if not len(v) or not len(other_v):
-        return np.zeros(0), np.zeros(0, np.int64)
+        return empty
     near_v, _ = cKDTree(other_v).query(v, distance_upper_bound=gap + GAP_SEARCH_MM)
     idx = np.flatnonzero(np.isfinite(near_v))
     if not len(idx):
-        return np.zeros(0), idx
+        return empty
+    poly = to_polydata(Surface(other_v, other_f), normals=False)
     dist = vtk.vtkImplicitPolyDataDistance()
-    dist.SetInput(to_polydata(Surface(other_v, other_f), normals=False))
+    dist.SetInput(poly)
     values = vtk.vtkDoubleArray()
     dist.FunctionValue(ns.numpy_to_vtk(np.ascontiguousarray(v[idx]), deep=True), values)
-    return np.abs(ns.vtk_to_numpy(values)).astype(np.float64), idx
+    d = np.abs(ns.vtk_to_numpy(values)).astype(np.float64)
+    away = np.zeros((len(idx), 3))
+    short = np.flatnonzero(d < gap)
+    if len(short):
+        loc = vtk.vtkStaticCellLocator()
+        loc.SetDataSet(poly)
+        loc.BuildLocator()
+        closest = [0.0, 0.0, 0.0]
+        cell, sub, dist2 = vtk.reference(0), vtk.reference(0), vtk.reference(0.0)
+        for j in short:
+            p = v[idx[j]]
+            loc.FindClosestPoint(p, closest, cell, sub, dist2)
+            u = p - np.asarray(closest)
+            length = np.linalg.norm(u)
+            if length > 1e-9:
+                away[j] = u / length
+    return d, idx, away
 
 
 def _faces_meeting(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
