@@ -37,6 +37,12 @@ PEAK_REACH_MM = 0.5
 # VALLEY_MIN_REACH_MM outside the vertex.
 VALLEY_REACH_MM = 2.0
 VALLEY_MIN_REACH_MM = 1.5
+# A profile that rises above its edge level again after the first crossing (within the peak's
+# reach) is anchored on that outer layer's peak instead, at most this many times.
+REANCHOR_ROUNDS = 2
+# ... when it rises this fraction of the peak - valley contrast above the level (noise on a
+# flank that hovers at the level is no outer layer).
+REANCHOR_MARGIN = 0.25
 # Value of profile samples outside the grid (air).
 OUTSIDE_HU = -1000.0
 # Automatic edge level (edge_level None): the blurred-slab model. A cortex of thickness w blurred
@@ -83,6 +89,13 @@ def sample_profiles(vertices, faces, ct_smooth, spacing):
                         cval=OUTSIDE_HU).reshape(len(vertices), len(t))
     i_peak = np.argmax(prof[:, :int(np.count_nonzero(t <= PEAK_REACH_MM))], axis=1)
     peak = prof[np.arange(len(prof)), i_peak]
+    valley, inner = _valley_and_inner(t, prof, i_peak, peak)
+    return n, t, prof, i_peak, peak, valley, inner
+
+
+def _valley_and_inner(t, prof, i_peak, peak):
+    """(valley, inner) of profiles ``prof`` (n, k) whose peak is at ``i_peak`` (n,), see
+    :func:`sample_profiles`."""
     # Valley: the lowest value within 2 mm outside the peak (stops before a neighbour's cortex).
     # The window always reaches 1.5 mm outside the vertex, so a flat interior (peak deep inside)
     # still sees the soft tissue; a neighbour's cortex beyond the gap never lowers the minimum.
@@ -93,7 +106,7 @@ def sample_profiles(vertices, faces, ct_smooth, spacing):
     behind = (cols < i_peak[:, None]) & (t[None, :] >= (t[i_peak] - SLAB_INNER_MM)[:, None])
     inner = np.min(np.where(behind, prof, np.inf), axis=1)
     inner = np.where(np.isfinite(inner), inner, peak)
-    return n, t, prof, i_peak, peak, valley, inner
+    return valley, inner
 
 
 def contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast=MIN_CONTRAST_HU,
@@ -258,17 +271,35 @@ def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
         profiles = sample_profiles(vertices, faces, ct_smooth, spacing)
     n, t, prof, i_peak, peak, valley, inner = profiles
     cols = np.arange(len(t))[None, :]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        contrast = peak - valley
-        if isinstance(edge_level, tuple):
-            fraction = slab_edge_level(contrast / edge_level[1], (peak - inner) / contrast)
-        else:
-            fraction = edge_level
-    level = valley + fraction * (peak - valley)
-    below = (prof < level[:, None]) & (cols > i_peak[:, None])
-    first = np.argmax(below, axis=1)
     rows = np.arange(len(prof))
-    has = below[rows, first]
+    reach = int(np.count_nonzero(t <= PEAK_REACH_MM))
+    for attempt in range(REANCHOR_ROUNDS + 1):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            contrast = peak - valley
+            if isinstance(edge_level, tuple):
+                fraction = slab_edge_level(contrast / edge_level[1], (peak - inner) / contrast)
+            else:
+                fraction = edge_level
+        level = valley + fraction * (peak - valley)
+        below = (prof < level[:, None]) & (cols > i_peak[:, None])
+        first = np.argmax(below, axis=1)
+        has = below[rows, first]
+        # Bone again above the level after the first crossing, within the peak's reach: the
+        # brightest sample was a deeper cortex (the far wall of a thin shell such as a cup,
+        # seen through its cancellous middle), and the crossing found is the dip inside the
+        # bone. The edge is that of the outer layer: its peak anchors the profile instead.
+        rise = level + REANCHOR_MARGIN * (peak - valley)
+        again = has & ((prof[:, :reach] >= rise[:, None])
+                       & (cols[:, :reach] > first[:, None])).any(axis=1)
+        if attempt == REANCHOR_ROUNDS or not again.any():
+            break
+        r = np.flatnonzero(again)
+        outer = np.where(cols[:, :reach] > first[r, None], prof[r, :reach], -np.inf)
+        i_new = np.argmax(outer, axis=1)
+        i_peak, peak, valley, inner = (a.copy() for a in (i_peak, peak, valley, inner))
+        i_peak[r] = i_new
+        peak[r] = prof[r, i_new]
+        valley[r], inner[r] = _valley_and_inner(t, prof[r], i_new, peak[r])
     k1 = np.maximum(first - 1, 0)
     g0 = prof[rows, k1]
     g1 = prof[rows, first]
