@@ -58,3 +58,30 @@ def test_auto_level_finds_the_border_of_thin_cortex_where_the_half_maximum_is_ou
     # where the cortex is thick both are the half maximum
     assert abs(thick_auto - thick_half) < 0.05
     assert abs(thick_auto) < 0.1
+
+
+def test_the_edge_is_the_outer_layers_not_a_dip_inside_a_shell():
+    """A shell of two cortices (outer 11.2-12 mm, 1200 HU; inner 8.3-9.8 mm, 1500 HU) with
+    cancellous bone between them (150 HU), blurred: the brightest sample inside a vertex near
+    the outer surface is the inner cortex, and its first crossing of the level is the dip
+    between them. The edge is the outer cortex's: there the profile rises to bone again."""
+    d, radius = 0.25, 12.0
+    n = int(2 * (radius + 6) / d)
+    g = (np.arange(n) + 0.5) * d - (radius + 6)
+    z, y, x = np.meshgrid(g, g, g, indexing="ij")
+    r = np.sqrt(x * x + y * y + z * z)
+    ct = np.full(r.shape, 40.0)
+    ct[r <= radius] = 1200.0
+    ct[r <= radius - 0.8] = 150.0
+    ct[r <= 9.8] = 1500.0
+    ct[r <= 8.3] = 100.0
+    ct = ndimage.gaussian_filter(ct, 0.5 / d).astype(np.float32)
+    shift = radius + 6 - 0.5 * d
+    s = sphere_mesh(12.5, 0.6)
+    v = s.vertices + shift
+    _, t, ok, _ = refine.edge_crossings(v, s.faces, ct, d, 200.0, 0.5)
+    assert ok.mean() > 0.95
+    # at the outer border (r = 12, t = -0.5 from r = 12.5; the half maximum of a blurred thin
+    # cortex lies a little outside it), not in the dip (r ~ 10.4, t ~ -2)
+    assert -0.6 < np.median(t[ok]) < -0.15
+    assert np.percentile(t[ok], 5) > -0.8

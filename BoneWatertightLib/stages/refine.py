@@ -40,9 +40,9 @@ VALLEY_MIN_REACH_MM = 1.5
 # A profile that rises above its edge level again after the first crossing (within the peak's
 # reach) is anchored on that outer layer's peak instead, at most this many times.
 REANCHOR_ROUNDS = 2
-# ... when it rises this fraction of the peak - valley contrast above the level (noise on a
-# flank that hovers at the level is no outer layer).
-REANCHOR_MARGIN = 0.25
+# ... when it rises at least this much (HU) above the dip after the crossing (noise on a flank
+# that hovers at the level is no outer layer): half the least contrast of an edge.
+REANCHOR_RISE_HU = 0.5 * MIN_CONTRAST_HU
 # Value of profile samples outside the grid (air).
 OUTSIDE_HU = -1000.0
 # Automatic edge level (edge_level None): the blurred-slab model. A cortex of thickness w blurred
@@ -288,9 +288,10 @@ def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
         # brightest sample was a deeper cortex (the far wall of a thin shell such as a cup,
         # seen through its cancellous middle), and the crossing found is the dip inside the
         # bone. The edge is that of the outer layer: its peak anchors the profile instead.
-        rise = level + REANCHOR_MARGIN * (peak - valley)
-        again = has & ((prof[:, :reach] >= rise[:, None])
-                       & (cols[:, :reach] > first[:, None])).any(axis=1)
+        after = cols[:, :reach] > first[:, None]
+        dip = np.minimum.accumulate(np.where(after, prof[:, :reach], np.inf), axis=1)
+        again = has & (after & (prof[:, :reach] >= level[:, None])
+                       & (prof[:, :reach] - dip >= REANCHOR_RISE_HU)).any(axis=1)
         if attempt == REANCHOR_ROUNDS or not again.any():
             break
         r = np.flatnonzero(again)
