@@ -237,6 +237,34 @@ def test_a_label_over_an_unlabelled_neighbours_rim_beyond_a_seen_joint_space(hid
         assert own.info["rim_voxels_unmarked"] > 0
 
 
+def test_a_plate_piece_cut_off_by_a_hole_keeps_its_markers(monkeypatch):
+    """A thin plate of bone 1 that its label covers (with the soft tissue around it) and that
+    continues beyond the label into unlabelled plate; a hole across it (dark between bright,
+    a seen valley) cuts the piece beyond it off from the core. That piece lies in soft tissue
+    the label covers, not against a joint space: it stays bone 1's (without the shell rule it
+    would give up its markers like a neighbour's rim)."""
+    shape = (24, 24, 64)
+    ct = np.full(shape, 40.0, np.float32)
+    ct[4:20, 4:20, 5:25] = 1200.0
+    ct[6:18, 6:18, 7:23] = 300.0
+    ct[11:13, 8:16, 25:56] = 550.0  # the plate, 2 voxels thick
+    ct[11:13, 8:16, 30] = 40.0  # a hole across it
+    labels = np.zeros(shape, np.uint16)
+    labels[4:20, 4:20, 5:25] = 1
+    labels[11:13, 6:18, 25:37] = 1  # the label over the plate (and soft tissue beside it), to x 36
+
+    def run():
+        return ownership.compute_ownership(ct, labels, 1, 1.0, h0=400.0, ht=200.0,
+                                           theta_max=2500.0, soft=40.0, contrast=1160.0,
+                                           coarseness=1.0, band_mm=3.0)
+
+    own = run()
+    assert (own.owner[11, 12, 31:37] == 1).all(), own.owner[11, 12, 26:44]
+    assert own.info["rim_voxels_unmarked"] == 0
+    monkeypatch.setattr(ownership, "RIM_JOINT_FRACTION", 0.0)
+    assert run().info["rim_voxels_unmarked"] > 0  # the rule alone would have taken them
+
+
 @pytest.mark.parametrize("neighbour", [False, True])
 def test_merged_bone_counts_as_fused_only_where_it_continues_into_unlabelled_bone(neighbour):
     """A plate of bone 1 that its label leaves out (an AI label misses a thin blade) is merged
