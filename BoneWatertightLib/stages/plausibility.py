@@ -197,9 +197,21 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         unsupported_ml = float(unsupported.sum() * spacing ** 3 / 1000.0)
         label = label & ~unsupported
     label = label & in_image
+    # Depth in the segment, from a voxel's centre to the label's boundary (half a voxel less
+    # than the distance to the nearest centre outside), on the working grid: measured on the
+    # blocks below, a block at the label's edge counted as a block deep (its centre lies half
+    # a block inside), and the outer layer of a coarse label that overhangs the bone's edge -
+    # outside the bone, rightly outside the surface - counted as missing bone (15-16 % of a
+    # 3 mm acetabular shell on 2.5 mm slices, every such block 0.26-1.2 mm outside the truth).
+    depth = distance_inside(np.pad(label, 1))[1:-1, 1:-1, 1:-1] * spacing - 0.5 * spacing
+    deep_enough = depth > 0.5 * coarseness
+    core_deep = depth > 0.5 * coarseness + MISSING_WARN_DEPTH_MM
+    del depth
     # Bounds of a few mm need no sub-millimetre grid: measure on blocks of about 1 mm.
     f = max(1, int(round(COARSE_MM / spacing)))
     if f > 1:
+        deep_enough = _block_majority(deep_enough, f)
+        core_deep = _block_majority(core_deep, f)
         label = _block_majority(label, f)
         inside = _block_majority(inside, f)
         neighbours = _block_majority(neighbours, f)
@@ -215,7 +227,6 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     voxel = spacing ** 3
     seg_n = int(label.sum())
     in_n = int(inside.sum())
-    d_in = distance_inside(np.pad(label, 1))[1:-1, 1:-1, 1:-1] * spacing
     d_out = distance_outside(label) * spacing
     # Pieces of the segment that the surface does not touch at all (islands of a rough segment
     # in the soft tissue) are reported, not counted as missing bone.
@@ -238,11 +249,11 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         part &= ~others_owned
     if contact_mm > 0 and neighbours.any():
         part &= distance_outside(neighbours) * spacing > contact_mm
-    deep = part & (d_in > 0.5 * coarseness)
+    deep = part & deep_enough
     if not deep.any():
         deep = part if part.any() else label
     missing = float((deep & ~inside).sum() / max(deep.sum(), 1))
-    core = deep & (d_in > 0.5 * coarseness + MISSING_WARN_DEPTH_MM)
+    core = deep & core_deep
     core_missing = float((core & ~inside).sum() / max(core.sum(), 1))
     extra = float((inside & in_image & (d_out > band_mm + coarseness)).sum() / max(in_n, 1))
     exc = sample_field(d_out.astype(np.float32), vertices, spacing, cval=0.0)
