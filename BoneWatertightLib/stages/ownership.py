@@ -12,8 +12,11 @@ label is a bone: the targets and their neighbours). Axis order (z, y, x) through
    stuck to the bone) is no core (:func:`unsupported_parts`; reported per label).
 2. **Markers**: each label's voxels in [H0, theta_max] and its core, except in the **joint
    zone** (its voxels within ``r_contact`` of another label), where labels are not trusted (AI
-   masks are often wrong by a few mm at a joint); and "other bone": H0 voxels outside every
-   label's region (an unlabelled neighbour), one marker per connected piece.
+   masks are often wrong by a few mm at a joint), in a joint space the CT shows, and in a part
+   of the label that such a joint space cuts off from its core and whose bone continues into
+   unlabelled bone (:func:`_beyond_a_joint_space`: a coarse label over an unlabelled
+   neighbour's rim); and "other bone": H0 voxels outside every label's region (an unlabelled
+   neighbour), one marker per connected piece.
 3. **Flooding** (:func:`flood_from_markers`) inside F in the order of the CT's valley-ness
    V = closing(CT) - CT (a black top-hat, quantised): V is high in thin dark gaps between
    bright cortices - joint spaces - and about zero in trabecular bone and soft tissue. So
@@ -683,8 +686,8 @@ def _beyond_a_joint_space(fg, strong, labels, seg: _LabelParts, om, seen) -> np.
         if not core_i.any():
             continue
         # The label's bone evidence less the seen joint space: the parts its core reaches.
-        # (Only the parts with no core: the largest core part as the only anchor took a
-        # femoral head whose core the marrow's valleys cut off from the shaft's.)
+        # Every part holding core voxels counts (anchored on the largest core part alone, a
+        # femoral head whose core the marrow's valleys part from the shaft's was cut off).
         parts, npart = ndimage.label(lab_i & fg[sl] & ~seen[sl], structure=SIX)
         if npart < 2:
             continue

@@ -365,8 +365,10 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str) -> Pl
         p.warnings.append(
             f"{name} | unlabelled bone: the CT shows a joint space on only "
             f"{100 * p.unlabelled_contact_seen:.0f} % of their {p.unlabelled_contact_mm2:.0f} "
-            "mm^2 contact; elsewhere the boundary is a guess: label the neighbouring bone and "
-            "check the surface there")
+            "mm^2 contact; elsewhere the boundary is a guess: if that bone is a neighbour, "
+            "label it; if it continues this bone (a part the segment missed, such as a thin "
+            "blade beyond a coarse label), extend the segment over it; then check the surface "
+            "there")
     if p.p95_excursion_mm > warn_exc and not problems:
         p.warnings.append(
             f"{name}: 5 % of the surface lies more than {p.p95_excursion_mm:.1f} mm outside the "
