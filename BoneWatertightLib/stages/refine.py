@@ -242,7 +242,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
 
 
 def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
-                   min_contrast=MIN_CONTRAST_HU, profiles=None):
+                   min_contrast=MIN_CONTRAST_HU, profiles=None, allowed=None):
     """Where each vertex's CT profile crosses its edge level.
 
     Parameters
@@ -255,6 +255,10 @@ def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
         As :func:`refine_pass`.
     profiles : tuple, optional
         :func:`sample_profiles` of these vertices, when already sampled.
+    allowed : callable, optional
+        points (n, 3) -> bool, this bone's side of its joints (as :func:`refine_to_edges`):
+        a layer beyond the dip whose peak lies elsewhere is a neighbour's cortex across a
+        joint space, not this bone's outer layer, and anchors nothing.
 
     Returns
     -------
@@ -297,6 +301,11 @@ def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
         r = np.flatnonzero(again)
         outer = np.where(cols[:, :reach] > first[r, None], prof[r, :reach], -np.inf)
         i_new = np.argmax(outer, axis=1)
+        if allowed is not None:
+            mine = allowed(vertices[r] + t[i_new][:, None] * n[r])
+            r, i_new = r[mine], i_new[mine]
+            if not len(r):
+                break
         i_peak, peak, valley, inner = (a.copy() for a in (i_peak, peak, valley, inner))
         i_peak[r] = i_new
         peak[r] = prof[r, i_new]
@@ -329,7 +338,7 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
                                        profiles=profiles)
         edge_level = 0.5 if not np.isfinite(reference) else ("slab", reference)
     n, t_cross, ok, _ = edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
-                                       min_contrast, profiles=profiles)
+                                       min_contrast, profiles=profiles, allowed=allowed)
     shift = np.where(ok, np.clip(t_cross, -max_shift, max_shift), 0.0)
     w = ok.astype(np.float64)
     if plate_targets is not None:
