@@ -879,7 +879,7 @@ def contact_stage(run: _Run, ws: Workspace, bones: dict) -> None:
                                         {k: b.fallbacks for k, b in bones.items()},
                                         {k: b.name for k, b in bones.items()},
                                         threads=run.threads)
-        exact = _keep_gaps_exact(surfaces, run.params.min_gap)
+        exact = _keep_gaps_exact(surfaces, run.params.min_gap, sub)
         for k, b in bones.items():
             b.vertices = surfaces[k][0]
             b.contacts = {"passes": [{"moved": rec[k][0], "still_closer_than_gap": rec[k][1]}
@@ -937,10 +937,12 @@ def _resolve_with_retries(surfaces: dict, fixed: dict, shape: tuple, d: float, m
     return history
 
 
-def _keep_gaps_exact(surfaces: dict, min_gap: float) -> dict:
+def _keep_gaps_exact(surfaces: dict, min_gap: float,
+                     progress: Optional[Progress] = None) -> dict:
     """stages.contacts.keep_gap_exact on every pair of ``surfaces`` ({key: [vertices,
     faces]}, updated in place) whose boxes come within the gap and the search distance;
-    returns {key: {"moved": vertices moved, "with": {other key: smallest gap left mm}}}."""
+    returns {key: {"moved": vertices moved, "with": {other key: smallest gap left mm}}}.
+    ``progress`` is told before each pair (so a cancel stops it there)."""
     reach = min_gap + _contacts.GAP_SEARCH_MM
     boxes = {k: (v.min(axis=0) - reach, v.max(axis=0) + reach) for k, (v, _) in surfaces.items()}
     out = {}
@@ -949,6 +951,8 @@ def _keep_gaps_exact(surfaces: dict, min_gap: float) -> dict:
         for b in keys[i + 1:]:
             if np.any(boxes[a][1] < boxes[b][0]) or np.any(boxes[b][1] < boxes[a][0]):
                 continue
+            if progress is not None:
+                progress(1.0, "exact joint gaps")
             va, vb, na, nb, gap = _contacts.keep_gap_exact(
                 surfaces[a][0], surfaces[a][1], surfaces[b][0], surfaces[b][1],
                 min_gap + GAP_MARGIN_MM)
