@@ -622,6 +622,11 @@ def test_bones_split_by_their_labels_alone_get_a_pair_warning():
         assert bool(pair.warnings) == warned, (gap, pair)
         for bone in res.bones:
             assert any("joint space on only" in w for w in bone.report.warnings) == warned
+        # the exact gap step: never closer than min_gap (0.2 mm), reported per neighbour
+        assert pair.min_gap_mm >= 0.2 - 1e-6, (gap, pair.min_gap_mm)
+        if warned:
+            for bone in res.bones:
+                assert min(bone.report.contacts["exact_gap"]["with"].values()) >= 0.2
 
 
 def test_a_bone_split_from_a_neighbour_label_by_the_labels_alone_gets_a_warning():
