@@ -48,8 +48,9 @@ ENFORCE_RELAX_RINGS = 2
 CONTACT_PASSES = 3
 # Beyond a field's box no other bone is near: phi reads -FAR there (always on the bone's side).
 FAR = 1e3
-# Exact gap (keep_gap_exact): each vertex closer than the gap to the other surface moves in by
-# GAP_SHARE of its shortfall + GAP_EXTRA_MM (both surfaces move, so a little over half), at
+# Exact gap (keep_gap_exact): each vertex closer than the gap to the other surface moves away
+# from its nearest point there by GAP_SHARE of its shortfall + GAP_EXTRA_MM (both surfaces move,
+# so a little over half), at
 # most GAP_ROUNDS times; candidates lie within the gap + GAP_SEARCH_MM of the other's vertices
 # (more than an edge: the nearest point of a triangle can be far from its corners).
 GAP_SHARE = 0.6
@@ -211,6 +212,21 @@ def _ring_patch(adjacency, seeds: np.ndarray, rings: int) -> np.ndarray:
     return patch
 
 
+def _adjacency(n: int, faces: np.ndarray):
+    """(n, n) csr matrix, 1 where two vertices share an edge (and on the diagonal)."""
+    return (abs(laplacian(n, faces)) > 0).astype(np.float64).tocsr()
+
+
+def _halfway_to_ring_mean(v: np.ndarray, adjacency, ring: np.ndarray) -> np.ndarray:
+    """``v`` with the vertices of ``ring`` ((n,) bool) moved halfway to the mean of their
+    one-ring (themselves included: ``adjacency`` from :func:`_adjacency`); unchecked."""
+    degree = np.asarray(adjacency.sum(axis=1)).ravel()
+    mean = (adjacency @ v) / np.maximum(degree, 1)[:, None]
+    out = v.copy()
+    out[ring] = 0.5 * (v[ring] + mean[ring])
+    return out
+
+
 def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, gap: float,
             rounds: int = ENFORCE_ROUNDS, pinned: np.ndarray | None = None,
             operators: dict | None = None):
@@ -278,11 +294,8 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
             # one-ring (itself included; a spike into the other bone comes back on its own
             # side), so the next round can move it.
             ring = _ring_patch(adjacency, stuck, ENFORCE_RELAX_RINGS) & free
-            degree = np.asarray(adjacency.sum(axis=1)).ravel()
-            mean = (adjacency @ new) / np.maximum(degree, 1)[:, None]
-            relaxed = new.copy()
-            relaxed[ring] = 0.5 * (new[ring] + mean[ring])
-            relaxed, ok, _ = safe_update(new, relaxed, faces, intersections=False)
+            relaxed, ok, _ = safe_update(new, _halfway_to_ring_mean(new, adjacency, ring), faces,
+                                         intersections=False)
             if ok:
                 relaxed_any |= np.any(relaxed != new, axis=1)
                 new = relaxed
@@ -400,6 +413,7 @@ def keep_gap_exact(va, fa, vb, fb, gap: float, rounds: int = GAP_ROUNDS):
     va = np.array(va, dtype=np.float64)
     vb = np.array(vb, dtype=np.float64)
     start_a, start_b = va.copy(), vb.copy()
+    adjacency = {}  # built once per surface, when a vertex first gets stuck
     smallest = None
     for r in range(rounds + 1):
         near = [_close_vertices(va, vb, fb, gap), _close_vertices(vb, va, fa, gap)]
@@ -408,7 +422,7 @@ def keep_gap_exact(va, fa, vb, fb, gap: float, rounds: int = GAP_ROUNDS):
         if r == rounds or smallest is None or smallest >= gap:
             break
         out = []
-        for v, f, (d, idx, away) in ((va, fa, near[0]), (vb, fb, near[1])):
+        for side, v, f, (d, idx, away) in ((0, va, fa, near[0]), (1, vb, fb, near[1])):
             short = d < gap
             if not short.any():
                 out.append(v)
@@ -419,28 +433,21 @@ def keep_gap_exact(va, fa, vb, fb, gap: float, rounds: int = GAP_ROUNDS):
             new, _, _ = safe_update(v, new, f, intersections=True)
             stuck = idx[short][np.all(new[idx[short]] == v[idx[short]], axis=1)]
             if len(stuck):
-                new = _relax_rings(new, f, stuck)
+                # The tip of a spike or fold: relax its one-ring halfway to the ring's mean.
+                if side not in adjacency:
+                    adjacency[side] = _adjacency(len(v), f)
+                mark = np.zeros(len(v), bool)
+                mark[stuck] = True
+                ring = _ring_patch(adjacency[side], mark, 1)
+                relaxed, ok, _ = safe_update(new, _halfway_to_ring_mean(new, adjacency[side], ring),
+                                             f, intersections=True)
+                if ok:
+                    new = relaxed
             out.append(new)
         va, vb = out
     moved_a = int(np.any(va != start_a, axis=1).sum())
     moved_b = int(np.any(vb != start_b, axis=1).sum())
     return va, vb, moved_a, moved_b, smallest
-
-
-def _relax_rings(v: np.ndarray, f: np.ndarray, seeds: np.ndarray) -> np.ndarray:
-    """``v`` with the one-rings of ``seeds`` (vertex indices; themselves included) moved
-    halfway to the mean of each vertex's one-ring, where that flips no face and makes no
-    self-intersection (else ``v``)."""
-    adjacency = (abs(laplacian(len(v), f)) > 0).astype(np.float64).tocsr()
-    mark = np.zeros(len(v), bool)
-    mark[seeds] = True
-    ring = _ring_patch(adjacency, mark, 1)
-    degree = np.asarray(adjacency.sum(axis=1)).ravel()
-    mean = (adjacency @ v) / np.maximum(degree, 1)[:, None]
-    relaxed = v.copy()
-    relaxed[ring] = 0.5 * (v[ring] + mean[ring])
-    relaxed, ok, _ = safe_update(v, relaxed, f, intersections=True)
-    return relaxed if ok else v
 
 
 def _close_vertices(v, other_v, other_f, gap: float):
@@ -457,27 +464,20 @@ def _close_vertices(v, other_v, other_f, gap: float):
     idx = np.flatnonzero(np.isfinite(near_v))
     if not len(idx):
         return empty
-    poly = to_polydata(Surface(other_v, other_f), normals=False)
     dist = vtk.vtkImplicitPolyDataDistance()
-    dist.SetInput(poly)
+    dist.SetInput(to_polydata(Surface(other_v, other_f), normals=False))
     values = vtk.vtkDoubleArray()
     dist.FunctionValue(ns.numpy_to_vtk(np.ascontiguousarray(v[idx]), deep=True), values)
     d = np.abs(ns.vtk_to_numpy(values)).astype(np.float64)
     away = np.zeros((len(idx), 3))
-    short = np.flatnonzero(d < gap)
-    if len(short):
-        loc = vtk.vtkStaticCellLocator()
-        loc.SetDataSet(poly)
-        loc.BuildLocator()
-        closest = [0.0, 0.0, 0.0]
-        cell, sub, dist2 = vtk.reference(0), vtk.reference(0), vtk.reference(0.0)
-        for j in short:
-            p = v[idx[j]]
-            loc.FindClosestPoint(p, closest, cell, sub, dist2)
-            u = p - np.asarray(closest)
-            length = np.linalg.norm(u)
-            if length > 1e-9:
-                away[j] = u / length
+    closest = [0.0, 0.0, 0.0]
+    for j in np.flatnonzero(d < gap):
+        p = v[idx[j]]
+        dist.EvaluateFunctionAndGetClosestPoint(p, closest)
+        u = p - np.asarray(closest)
+        length = np.linalg.norm(u)
+        if length > 1e-9:
+            away[j] = u / length
     return d, idx, away
 
 

@@ -503,8 +503,9 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     quantum = max(VALLEY_QUANTUM_MIN_HU, VALLEY_QUANTUM_FRACTION * contrast)
     radius = 0.5 * VALLEY_GAP_MM + spacing
     levels = np.floor(np.clip(valley_map(ct, spacing, radius), 0, None) / quantum).astype(np.int32)
-    markers, n_pieces, dropped = _markers(fg, strong, labels, seg, other, spacing,
-                                          seen=~strong & (levels >= SEEN_VALLEY_QUANTA))
+    # A visible joint space: below H0 in a valley of at least SEEN_VALLEY_QUANTA quanta.
+    seen = ~strong & (levels >= SEEN_VALLEY_QUANTA)
+    markers, n_pieces, dropped = _markers(fg, strong, labels, seg, other, spacing, seen=seen)
     if progress:
         progress(0.6, "flooding from the markers")
     ws = flood_from_markers(markers, levels, fg)
@@ -513,8 +514,8 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     # A visible joint space (cartilage between two cortices, below H0, in a valley of at least
     # SEEN_VALLEY_QUANTA quanta) is no bone: it joins no bone's W_HT (removed below, after the
     # contacts between the basins are measured).
-    joint_space = fg & ~strong & (seg.cores == 0) & (levels >= SEEN_VALLEY_QUANTA)
-    del levels
+    joint_space = fg & seen & (seg.cores == 0)
+    del levels, seen
     if progress:
         progress(0.8, "contacts between bones")
     faces = _interfaces(ws, fg, ct, spacing, quantum, radius)
