@@ -7,7 +7,7 @@ import pytest
 from BoneWatertightLib.mesh.cap import cap_plane
 from BoneWatertightLib.mesh.checks import check_surface
 from BoneWatertightLib.mesh.surface import enclosed_volume
-from BoneWatertightLib.stages import contacts, ownership, plausibility
+from BoneWatertightLib.stages import contacts, jointfit, ownership, plausibility
 
 from test_checks import icosphere, torus
 
@@ -835,3 +835,79 @@ def test_losing_part_of_what_the_segment_clearly_covers_warns():
     assert not gated(0.03).warnings
     p = gated(0.2)
     assert len(p.problems) == 1 and not p.warnings
+
+
+def _ball_in_cup(hide_deg=35.0, short=5.0, n=56):
+    """A ball (cortex r 10-12 voxels) in a cup (r 14-17, opening downwards) with a 2-voxel
+    joint space, hidden (bright, as slices along the joint blur it) within ``hide_deg`` of
+    the pole; the cup's label takes the ball's top ``short`` voxels and the hidden joint."""
+    c = np.array([20.0, n / 2, n / 2])
+    z, y, x = np.indices((n, n, n)).astype(float)
+    r = np.sqrt((z - c[0]) ** 2 + (y - c[1]) ** 2 + (x - c[2]) ** 2)
+    cosp = (z - c[0]) / np.maximum(r, 1e-9)
+    ct = np.full((n, n, n), 40.0, np.float32)
+    ct[r <= 12] = 300.0
+    ct[(r > 10) & (r <= 12)] = 1200.0
+    cup = (r >= 14) & (r <= 17) & (cosp > -0.2)
+    ct[cup] = 1200.0
+    gap = (r > 12) & (r < 14) & (cosp > -0.2)
+    ct[gap] = 120.0
+    hidden = gap & (cosp > np.cos(np.radians(hide_deg)))
+    ct[hidden] = 1200.0
+    labels = np.zeros(ct.shape, np.uint16)
+    labels[r <= 12] = 1
+    labels[cup] = 2
+    labels[(labels == 1) & (z > c[0] + 12 - short)] = 2
+    labels[hidden] = 2
+    return ct, labels, r, z - c[0]
+
+
+def test_the_seen_part_of_a_joint_is_carried_over_the_hidden_pole(monkeypatch):
+    """Slices along a ball joint hide its pole; the cup's label took 5 voxels of the ball
+    there, beyond what the joint cut re-decides. A sphere fitted to the joint space seen
+    around the pole gives the ball its top back; the cup keeps its own wall."""
+    ct, labels, r, dz = _ball_in_cup()
+
+    def run():
+        return ownership.compute_ownership(ct, labels, 2, 1.0, h0=400.0, ht=200.0,
+                                           theta_max=2500.0, soft=40.0, contrast=1160.0,
+                                           coarseness=1.0, band_mm=3.0)
+
+    pole = (r <= 11.5) & (dz > 7)
+    cup = (r >= 14.5) & (r <= 17) & (dz / np.maximum(r, 1e-9) > -0.1)
+    own = run()
+    fit = own.info["joint_fits"]
+    assert len(fit) == 1 and fit[0]["used"] and fit[0]["model"] == "sphere", fit
+    assert abs(fit[0]["radius_mm"] - 13.0) < 0.5 and fit[0]["to_a"] > 0
+    assert (own.owner[pole] == 1).mean() > 0.9
+    assert (own.owner[cup] == 2).all()
+    monkeypatch.setattr(ownership, "FIT_MIN_AGREEMENT", 2.0)  # no fit trusted: the labels
+    assert (run().owner[pole] == 1).mean() < 0.2
+
+
+def test_joint_surface_fit_picks_the_simpler_model_and_refuses_noise():
+    rng = np.random.default_rng(4)
+    # a band of a sphere (r 13 mm) between 40 and 80 degrees from its pole, 0.3 mm scatter
+    th = np.radians(rng.uniform(40, 80, 3000))
+    ph = rng.uniform(0, 2 * np.pi, 3000)
+    u = np.column_stack([np.cos(th), np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph)])
+    c = np.array([5.0, -3.0, 11.0])
+    pts = c + u * (13.0 + rng.normal(0, 0.3, (3000, 1)))
+    s = jointfit.fit_joint_surface(pts, 0.6)
+    assert s.kind == "sphere" and abs(s.radius - 13.0) < 0.1 and s.rms < 0.4
+    # the hidden pole inside the band is supported when the support is built about it; the
+    # far side of the ball is not
+    assert s.build_support(np.array([1.0, 0.0, 0.0]))
+    assert s.supported(np.array([c + [13.0, 0, 0]]))[0]
+    assert not s.supported(np.array([c - [13.0, 0, 0]]))[0]
+    # a plane patch with a hole: a plane, the hole supported, beyond its rim not
+    xy = rng.uniform(-10, 10, (3000, 2))
+    xy = xy[np.hypot(*xy.T) > 4]
+    pts = np.column_stack([0.2 * rng.normal(size=len(xy)), xy])
+    s = jointfit.fit_joint_surface(pts, 0.6)
+    assert s.kind == "plane" and s.rms < 0.3
+    assert s.supported(np.array([[1.0, 0.5, 0.5]]))[0]
+    assert not s.supported(np.array([[0.0, 15.0, 0.0]]))[0]
+    # scattered points (no surface) and too few points: no fit
+    assert jointfit.fit_joint_surface(rng.uniform(-10, 10, (3000, 3)), 0.6) is None
+    assert jointfit.fit_joint_surface(pts[:20], 0.6) is None

@@ -481,11 +481,40 @@ def _close_vertices(v, other_v, other_f, gap: float):
     return d, idx, away
 
 
-def _faces_meeting(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """The faces (m, 3) of (v, f) whose bounding boxes meet the box [lo, hi] (x-y-z mm)."""
+def _face_ids_meeting(v: np.ndarray, f: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The indices (m,) of the faces of (v, f) whose bounding boxes meet the box [lo, hi]
+    (x-y-z mm)."""
     tri = v[f]
     keep = np.all(tri.min(axis=1) <= hi, axis=1) & np.all(tri.max(axis=1) >= lo, axis=1)
-    return f[keep]
+    return np.flatnonzero(keep)
+
+
+def crossing_faces(va, fa, vb, fb) -> tuple:
+    """The faces of two surfaces that cross each other (exact test): two (k,) int arrays, the
+    face of a and the face of b of each crossing pair (vertices in any common frame, mm)."""
+    va = np.asarray(va, dtype=np.float64)
+    vb = np.asarray(vb, dtype=np.float64)
+    fa = np.asarray(fa, dtype=np.int64)
+    fb = np.asarray(fb, dtype=np.int64)
+    lo = np.maximum(va.min(axis=0), vb.min(axis=0)) - 2.0
+    hi = np.minimum(va.max(axis=0), vb.max(axis=0)) + 2.0
+    none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    if np.any(hi < lo):
+        return none
+    # Faces of one can cross faces of the other only where their boxes overlap: the exact
+    # test runs on the faces whose own boxes meet that region (a long bone pays for its joint).
+    ia = _face_ids_meeting(va, fa, lo, hi)
+    ib = _face_ids_meeting(vb, fb, lo, hi)
+    if not (len(ia) and len(ib)):
+        return none
+    merged = np.vstack([va, vb])
+    mf = np.vstack([fa[ia], fb[ib] + len(va)])
+    pairs = find_self_intersections(merged, mf)
+    if not len(pairs):
+        return none
+    cross = (pairs[:, 0] < len(ia)) != (pairs[:, 1] < len(ia))
+    pairs = np.sort(pairs[cross], axis=1)  # (face of a, face of b) in the merged order
+    return ia[pairs[:, 0]], ib[pairs[:, 1] - len(ia)]
 
 
 def pair_report(va, fa, vb, fb, crossing_only: bool = False) -> dict:
@@ -505,17 +534,7 @@ def pair_report(va, fa, vb, fb, crossing_only: bool = False) -> dict:
            "min_gap_mm": None, "contact_area_mm2": 0.0}
     if np.any(hi < lo):
         return out
-    # Faces of one can cross faces of the other only where their boxes overlap: the exact
-    # test runs on the faces whose own boxes meet that region (a long bone pays for its joint).
-    sub_a = _faces_meeting(va, fa, lo, hi)
-    sub_b = _faces_meeting(vb, fb, lo, hi)
-    if len(sub_a) and len(sub_b):
-        merged = np.vstack([va, vb])
-        mf = np.vstack([sub_a, sub_b + len(va)])
-        pairs = find_self_intersections(merged, mf)
-        if len(pairs):
-            out["crossing_face_pairs"] = int(((pairs[:, 0] < len(sub_a))
-                                              != (pairs[:, 1] < len(sub_a))).sum())
+    out["crossing_face_pairs"] = len(crossing_faces(va, fa, vb, fb)[0])
     if crossing_only:
         return out
 
