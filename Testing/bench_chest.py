@@ -172,6 +172,18 @@ def run_cli(cdir, timeout):
     return rec
 
 
+def _library_version():
+    """The commit of the work tree the CLI ran from, and whether the library had uncommitted
+    changes then (another engineer works in the same tree)."""
+    def git(*a):
+        try:
+            return subprocess.run(["git"] + list(a), cwd=ROOT, capture_output=True, text=True, timeout=30).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+    return {"commit": git("rev-parse", "--short", "HEAD"),
+            "library_uncommitted": bool(git("status", "--porcelain", "--", "BoneWatertightLib"))}
+
+
 # ---------------------------------------------------------------------------- evaluation
 
 def _read_stl(path):
@@ -424,6 +436,11 @@ def section(res):
              f"{' (cached)' if build.get('cached') else ''}; generator timings (s): "
              + ", ".join(f"{k} {fmt(v, 1)}" for k, v in (ph.get('timing') or {}).items()) + ".")
     L.append("")
+    lib = cli.get("library") or {}
+    if lib:
+        L.append(f"Library: work tree at commit {lib.get('commit')}"
+                 + (" with uncommitted library changes" if lib.get("library_uncommitted") else "") + ".")
+        L.append("")
     L.append("Command (cwd = the case folder): `" + " ".join(
         a if "{" not in a else f"'{a}'" for a in cli["argv"]) + "`")
     L.append("")
@@ -533,6 +550,8 @@ def main(argv=None):
     ap.add_argument("--samples", type=int, default=40000)
     ap.add_argument("--build", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--doc-only", action="store_true", help="only rewrite CHEST.md from the json files")
+    ap.add_argument("--reuse-phantom", action="store_true",
+                    help="use the phantom already built in the case folder even if the generator's source changed")
     ap.add_argument("--reuse-cli", action="store_true",
                     help="evaluate the outputs of the last CLI run in the case folder again (no new run)")
     args = ap.parse_args(argv)
@@ -545,7 +564,7 @@ def main(argv=None):
     tag = args.tag or "x".join(f"{v:g}".replace(".", "p") for v in args.spacing) + "mm"
     cdir = os.path.join(args.work, f"{tag}_s{args.seed}")
     log(f"building the phantom into {cdir} ...")
-    if args.reuse_cli and os.path.exists(os.path.join(cdir, "build.json")):
+    if (args.reuse_cli or args.reuse_phantom) and os.path.exists(os.path.join(cdir, "build.json")):
         brec = dict(json.load(open(os.path.join(cdir, "build.json"))), cached=True)
     else:
         brec = build(cdir, args.seed, args.shape, args.spacing)
@@ -557,6 +576,7 @@ def main(argv=None):
         cli["exit_code"] = cli.get("exit_status", cli.get("exit_code"))
     else:
         cli = run_cli(cdir, args.timeout)
+        cli["library"] = _library_version()
     log(f"CLI exit {cli.get('exit_code')} in {fmt(cli.get('wall_s'), 1)} s, peak {fmt(cli.get('peak_rss_mb'), 0)} MB")
     res, surfaces, truths, names = evaluate(cdir, args.samples)
     info = json.load(open(os.path.join(cdir, "info.json")))
