@@ -351,6 +351,29 @@ def test_resolve_contacts_separates_overlapping_surfaces_by_the_gap():
     assert np.allclose(surfaces[1][0][far], a[0][far], atol=0.05)
 
 
+def test_crossing_faces_and_the_retry_reach_are_where_the_surfaces_cross():
+    """The contact retries widen the margin only near the faces that cross: those faces are
+    found exactly, and the vertices within the reach of them are the only ones that may
+    move (a retry with a global margin pushed a whole ball joint apart)."""
+    from BoneWatertightLib.pipeline import _near_crossings
+
+    a = list(_grid_sphere(8.0, (20.0, 20.0, 21.0)))
+    b = list(_grid_sphere(8.0, (20.0, 20.0, 36.0)))  # a 1 mm lens around z = 28.5
+    fa, fb = contacts.crossing_faces(a[0], a[1], b[0], b[1])
+    assert len(fa) == len(fb) > 0
+    assert contacts.pair_report(a[0], a[1], b[0], b[1])["crossing_face_pairs"] == len(fa)
+    for v, f, ids in ((a[0], a[1], fa), (b[0], b[1], fb)):
+        z = v[f[ids]][..., 2]
+        assert np.all(np.abs(z - 28.5) < 2.5), z.min()
+    near = _near_crossings({1: a, 2: b}, [(1, 2)], 3.0)
+    za = a[0][near[1], 2]
+    assert near[1].any() and za.min() > 28.5 - 2.5 - 3.0 - 1e-6
+    assert not near[1][a[0][:, 2] < 20.0].any()
+    # apart: nothing crosses
+    c = list(_grid_sphere(8.0, (20.0, 20.0, 40.0)))
+    assert len(contacts.crossing_faces(a[0], a[1], c[0], c[1])[0]) == 0
+
+
 @pytest.mark.parametrize("seed", [3, 4])
 def test_resolve_contacts_separates_a_jagged_surface(seed):
     """A ragged surface (as a label's staircase leaves it) whose moves back into its territory
