@@ -1321,8 +1321,8 @@ def _hidden_part_text(own, a: int, b: int) -> str:
     for f in own.info.get("joint_fits", []):
         if {f["a"], f["b"]} == {a, b} and f.get("used"):
             return (f"elsewhere the boundary between them follows a {f['model']} fitted to the "
-                    f"seen joint space (RMS {f['rms_mm']:.2f} mm) where the seen part surrounds "
-                    "the hidden one, and the segments' labels beyond")
+                    f"seen joint space (RMS {f['rms_mm']:.2f} mm) as far as it is carried, and "
+                    "the segments' labels beyond")
     return "elsewhere the boundary between them follows the segments' labels"
 
 

@@ -35,6 +35,9 @@ FIT_MIN_INLIERS = 0.8
 # is a plane for the points' purposes).
 SPHERE_RMS_GAIN = 0.75
 SPHERE_MAX_RADIUS_EXTENTS = 5.0
+# A sphere is carried over the whole contact only when its points span at least this many
+# radii (see JointSurface.determined).
+SPHERE_MIN_EXTENT_RADII = 1.0
 # Robust fitting: points farther than this many RMS (at least one voxel) are dropped and the
 # fit repeated, this many rounds.
 TRIM_RMS = 2.5
@@ -65,6 +68,14 @@ class JointSurface:
     hull: object = None
 
     points: Optional[np.ndarray] = None
+    extent: float = 0.0   # the points' largest extent along the surface (mm)
+
+    @property
+    def determined(self) -> bool:
+        """A sphere's curvature is determined by its points when they span at least
+        SPHERE_MIN_EXTENT_RADII radii (a cap of about 30 degrees or more): then it may be
+        carried over the whole contact; a flatter patch only near itself."""
+        return self.kind == "sphere" and self.extent >= SPHERE_MIN_EXTENT_RADII * self.radius
 
     def build_support(self, towards: Optional[np.ndarray] = None) -> bool:
         """Make the support: the hull of the fitted points' projections. A sphere's points are
@@ -253,4 +264,5 @@ def fit_joint_surface(points: np.ndarray, voxel: float) -> Optional[JointSurface
         c, n, _ = res
         surf = JointSurface("plane", c, float("inf"), n, rms, int(keep.sum()))
     surf.points = pts
+    surf.extent = float(extent.max())
     return surf if surf.build_support() else None

@@ -519,6 +519,7 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         rec = {"a": int(a), "b": int(b), "model": surf.kind, "rms_mm": round(surf.rms, 3),
                "radius_mm": round(surf.radius, 2) if np.isfinite(surf.radius) else None,
                "points": surf.n_points, "inliers": round(surf.n_points / len(pts), 3),
+               "extent_mm": round(surf.extent, 1),
                "to_a": 0, "to_b": 0, "used": False}
         out.append(rec)
         # Orient the fit by the bones beside the seen joint space; it must separate them there.
@@ -542,14 +543,15 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         pos = (idx + offset) * spacing
         s = surf.signed(pos)
         ok = np.abs(s) <= reach_mm
-        if surf.kind == "sphere":
-            # A ball joint's surface continues over the whole contact: the fit holds within
-            # reach of where the two bones touch or the joint space is seen.
+        if surf.determined:
+            # A ball joint whose seen part spans a good part of the ball: its surface continues
+            # over the whole contact, and the fit holds within reach of where the two bones
+            # touch or the joint space is seen.
             touching = (in_a & (db <= spacing)) | (in_b & (da <= spacing)) | mid
             ok &= (distance_outside(touching) * spacing)[tuple(idx.T)] <= reach_mm
         else:
-            # A plane holds where the seen joint space surrounds the hidden part, and a margin
-            # beyond it.
+            # A plane, or a sphere seen on a small patch (its curvature poorly known), holds
+            # where the seen joint space surrounds the hidden part and a margin beyond it.
             ok[ok] = surf.supported(pos[ok], margin_mm=margin_mm)
         rec["used"] = True
         side = np.zeros(w.shape, np.int8)   # 1: clearly on a's side, 2: on b's
