@@ -1228,9 +1228,10 @@ def pair_stage(ws: Workspace, results: list, keep_going: bool = False,
     contact_of = {(cc["a"], cc["b"]): cc for cc in own.contacts}
     by_k = dict(zip(ws.targets, results))
     good = [k for k in ws.targets if by_k[k].ok]
-    pairs = []
+    pairs, keys = [], []
     for i, a in enumerate(good):
         for b in good[i + 1:]:
+            keys.append((a, b))
             ra, rb = by_k[a], by_k[b]
             rep = _contacts.pair_report(ra.surface.vertices, ra.surface.faces,
                                         rb.surface.vertices, rb.surface.faces)
@@ -1240,15 +1241,13 @@ def pair_stage(ws: Workspace, results: list, keep_going: bool = False,
                 joint_contact_mm2=float(joint["contact_area_mm2"]) if joint else 0.0,
                 joint_valley_seen_fraction=(float(joint["valley_seen_fraction"])
                                             if joint else None)))
-    a_of = {ws.name_of(k): k for k in good}
-
     def warn(p, text):  # on the pair and on both of its bones
         p.warnings.append(text)
         for k in good:
             if by_k[k].name in (p.a, p.b):
                 by_k[k].report.warnings.append(text)
 
-    for p in pairs:
+    for p, (a, b) in zip(pairs, keys):
         if p.ok and p.min_gap_mm is not None and p.min_gap_mm < min_gap:
             # The contact passes work on voxel fields: a sub-voxel approach can be left.
             warn(p, f"{p.a} | {p.b}: the surfaces come within {p.min_gap_mm:.2f} mm of each "
@@ -1258,7 +1257,7 @@ def pair_stage(ws: Workspace, results: list, keep_going: bool = False,
         if seen is not None and seen < JOINT_WARN_SEEN and p.joint_contact_mm2 > JOINT_WARN_MIN_MM2:
             warn(p, f"{p.a} | {p.b}: the CT shows a joint space on only {100 * seen:.0f} % of "
                     f"their {p.joint_contact_mm2:.0f} mm^2 contact; "
-                    f"{_hidden_part_text(own, a_of[p.a], a_of[p.b])} (a narrow joint on thick "
+                    f"{_hidden_part_text(own, a, b)} (a narrow joint on thick "
                     "slices, or no joint space at all): check both surfaces at the joint")
     # The same for a bone and a neighbour label that is not reconstructed in this run.
     for cc in own.contacts:

@@ -45,7 +45,8 @@ for _p in (ROOT, HERE):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
-from bench_common import check, fig_sections, fmt, jsonable, md_table, short, truth_metrics  # noqa: E402
+from bench_common import (check, fig_sections, fmt, jsonable, md_table, short,  # noqa: E402
+                          truth_metrics, write_phantom)
 from bench_worker import run_isolated  # noqa: E402
 
 CASES = ["pelvis_3mm", "pelvis_0p7x2p5", "lumbar_3mm", "lumbar_0p7x2p5", "scapula_3mm", "scapula_0p7x2p5"]
@@ -67,25 +68,12 @@ def _key(case, seed):
 
 def _build_here(case, seed, cdir):
     """In the build process: make the phantom and write it to cdir."""
-    import SimpleITK as sitk
-
     import anatomical
 
     t0 = time.perf_counter()
     ph = anatomical.make_anatomical(case, seed=seed)
     seconds = time.perf_counter() - t0
-    sitk.WriteImage(ph.ct, os.path.join(cdir, "ct.nrrd"), True)
-    sitk.WriteImage(ph.labels, os.path.join(cdir, "labels.nrrd"), True)
-    arrays = {}
-    for label, s in ph.truths.items():
-        arrays[f"v{label}"] = s.vertices
-        arrays[f"f{label}"] = s.faces
-    np.savez(os.path.join(cdir, "truths.npz"), **arrays)
-    info = {k: v for k, v in ph.info.items() if not k.startswith("_")}
-    info["names"] = {str(k): v for k, v in ph.names.items()}
-    info["build_seconds"] = seconds
-    with open(os.path.join(cdir, "info.json"), "w") as fh:
-        json.dump(jsonable(info), fh, indent=1, default=str)
+    write_phantom(cdir, ph, seconds)
 
 
 def build_case(case, seed, cdir, timeout=900.0):

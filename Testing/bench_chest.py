@@ -43,7 +43,8 @@ for _p in (ROOT, HERE):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
-from bench_common import check, fmt, jsonable, md_table, short, truth_metrics  # noqa: E402
+from bench_common import (check, fmt, jsonable, md_table, short, truth_metrics,  # noqa: E402
+                          write_phantom)
 
 CLI = os.path.join(ROOT, ".venv", "bin", "bonewatertight")
 DOC = os.path.join(ROOT, "Resources", "Benchmark", "chest")
@@ -97,24 +98,13 @@ def _build_here(cdir, seed, shape, spacing):
     t0 = time.perf_counter()
     ph = chest_phantom.make_chest(seed, shape=shape, spacing=spacing)
     seconds = time.perf_counter() - t0
-    sitk.WriteImage(ph.ct, os.path.join(cdir, "ct.nrrd"), True)
-    sitk.WriteImage(ph.labels, os.path.join(cdir, "labels.nrrd"), True)
     with open(os.path.join(cdir, "labels.csv"), "w") as fh:
         fh.write("value,name\n")
         for k in sorted(ph.names):
             fh.write(f"{k},{ph.names[k]}\n")
-    arrays = {}
-    for label, s in ph.truths.items():
-        arrays[f"v{label}"] = s.vertices
-        arrays[f"f{label}"] = s.faces
-    np.savez(os.path.join(cdir, "truths.npz"), **arrays)
-    info = {k: v for k, v in ph.info.items() if not k.startswith("_")}
-    info["names"] = {str(k): v for k, v in ph.names.items()}
-    info["build_seconds"] = seconds
     lab = sitk.GetArrayViewFromImage(ph.labels)
-    info["label_voxels"] = {str(k): int(v) for k, v in zip(*np.unique(lab, return_counts=True)) if k}
-    with open(os.path.join(cdir, "info.json"), "w") as fh:
-        json.dump(jsonable(info), fh, indent=1, default=str)
+    write_phantom(cdir, ph, seconds, label_voxels={
+        str(k): int(v) for k, v in zip(*np.unique(lab, return_counts=True)) if k})
 
 
 def build(cdir, seed, shape, spacing, timeout=3600):

@@ -354,3 +354,26 @@ def gate_text(pipe):
     if not pipe:
         return ""
     return "pass" + (f" (warning: {short('; '.join(w), 120)})" if w else "")
+
+
+def write_phantom(cdir, ph, seconds, **extra):
+    """A built phantom's files in ``cdir``: ct.nrrd, labels.nrrd, the truth meshes
+    (truths.npz: v<label>, f<label>) and info.json (its info without the private keys, the
+    names, the build time and ``extra``)."""
+    import json
+
+    import SimpleITK as sitk
+
+    sitk.WriteImage(ph.ct, os.path.join(cdir, "ct.nrrd"), True)
+    sitk.WriteImage(ph.labels, os.path.join(cdir, "labels.nrrd"), True)
+    arrays = {}
+    for label, s in ph.truths.items():
+        arrays[f"v{label}"] = s.vertices
+        arrays[f"f{label}"] = s.faces
+    np.savez(os.path.join(cdir, "truths.npz"), **arrays)
+    info = {k: v for k, v in ph.info.items() if not k.startswith("_")}
+    info["names"] = {str(k): v for k, v in ph.names.items()}
+    info["build_seconds"] = seconds
+    info.update(extra)
+    with open(os.path.join(cdir, "info.json"), "w") as fh:
+        json.dump(jsonable(info), fh, indent=1, default=str)

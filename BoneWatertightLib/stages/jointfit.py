@@ -176,37 +176,38 @@ def _sphere(p: np.ndarray) -> Optional[tuple]:
     return c, r, np.abs(np.linalg.norm(p - c, axis=1) - r)
 
 
-def _robust(fit, p: np.ndarray, voxel: float):
+def _plane_distance(res: tuple, p: np.ndarray) -> np.ndarray:
+    """Unsigned distances (n,) of points to the plane (centre, normal, _) of :func:`_plane`."""
+    return np.abs((p - res[0]) @ res[1])
+
+
+def _sphere_distance(res: tuple, p: np.ndarray) -> np.ndarray:
+    """Unsigned distances (n,) of points to the sphere (centre, radius, _) of :func:`_sphere`."""
+    return np.abs(np.linalg.norm(p - res[0], axis=1) - res[1])
+
+
+def _robust(fit, distance, p: np.ndarray, voxel: float):
+    """``fit`` (:func:`_plane` / :func:`_sphere`) of the points, trimmed of those farther than
+    TRIM_RMS x its RMS (at least a voxel; ``distance`` measures them) for TRIM_ROUNDS rounds:
+    (fit result, RMS of the kept points, (n,) bool kept), or None."""
     keep = np.ones(len(p), bool)
-    res = None
     for _ in range(TRIM_ROUNDS):
         if keep.sum() < FIT_MIN_POINTS:
             return None
         res = fit(p[keep])
         if res is None:
             return None
-        err = res[-1]
-        rms = float(np.sqrt(np.mean(err ** 2)))
-        # residuals of every point under this fit
-        full = fit_residual(res, p)
-        new = full <= max(TRIM_RMS * rms, voxel)
+        rms = float(np.sqrt(np.mean(res[-1] ** 2)))
+        new = distance(res, p) <= max(TRIM_RMS * rms, voxel)
         if (new == keep).all():
-            break
+            return res, rms, keep
         keep = new
-    if res is None or keep.sum() < FIT_MIN_POINTS:
+    if keep.sum() < FIT_MIN_POINTS:
         return None
     res = fit(p[keep])
     if res is None:
         return None
-    rms = float(np.sqrt(np.mean(res[-1] ** 2)))
-    return res, rms, keep
-
-
-def fit_residual(res: tuple, p: np.ndarray) -> np.ndarray:
-    """Unsigned distances (n,) of points to a fit result of :func:`_plane` / :func:`_sphere`."""
-    if len(res) == 3 and np.ndim(res[1]) == 0:  # sphere: (centre, radius, err)
-        return np.abs(np.linalg.norm(p - res[0], axis=1) - res[1])
-    return np.abs((p - res[0]) @ res[1])
+    return res, float(np.sqrt(np.mean(res[-1] ** 2))), keep
 
 
 def _frame(axis: np.ndarray) -> np.ndarray:
@@ -242,8 +243,8 @@ def fit_joint_surface(points: np.ndarray, voxel: float) -> Optional[JointSurface
     extent = q0.max(axis=0) - q0.min(axis=0)
     if extent.min() < FIT_MIN_EXTENT_MM:
         return None
-    plane = _robust(_plane, p, voxel)
-    sphere = _robust(_sphere, p, voxel)
+    plane = _robust(_plane, _plane_distance, p, voxel)
+    sphere = _robust(_sphere, _sphere_distance, p, voxel)
     chosen = None
     if sphere is not None and plane is not None:
         (c, r, _), rms_s, keep_s = sphere

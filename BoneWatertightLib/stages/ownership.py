@@ -489,7 +489,6 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
 
     out = []
     pad = int(np.ceil(reach_mm / spacing)) + 2
-    tol_min = spacing
     boxes = ndimage.find_objects(ws, max_label=n)
     for a, b in _touching_labels(ws, n):
         ba, bb = boxes[a - 1], boxes[b - 1]
@@ -538,7 +537,7 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         if agree < FIT_MIN_AGREEMENT:
             rec["reason"] = "the fit does not separate the two bones where the joint is seen"
             continue
-        tol = max(tol_min, 2.0 * surf.rms)
+        tol = max(spacing, 2.0 * surf.rms)
         idx = np.argwhere(in_a | in_b)
         pos = (idx + offset) * spacing
         s = surf.signed(pos)
