@@ -908,6 +908,31 @@ def test_the_seen_part_of_a_joint_is_carried_over_the_hidden_pole(monkeypatch):
     assert (run().owner[pole] == 1).mean() < 0.2
 
 
+def test_the_hidden_pole_is_carried_against_an_unlabelled_cup(monkeypatch):
+    """The same joint with the cup unlabelled and the ball's label 5 voxels short of its
+    pole: the pole's cortex, bridged to the cup where the slices hide the joint, is a piece of
+    unlabelled bone with the cup. The sphere fitted to the joint space seen between the ball
+    and that piece gives the ball its pole back; the cup stays unlabelled bone."""
+    ct, labels, r, dz = _ball_in_cup()
+    labels[labels == 2] = 0
+
+    def run():
+        return ownership.compute_ownership(ct, labels, 1, 1.0, h0=400.0, ht=200.0,
+                                           theta_max=2500.0, soft=40.0, contrast=1160.0,
+                                           coarseness=1.0, band_mm=3.0)
+
+    pole = (r <= 11.5) & (dz > 9)
+    cup = (r >= 14.5) & (r <= 17) & (dz / np.maximum(r, 1e-9) > -0.1)
+    own = run()
+    fit = own.info["joint_fits"]
+    assert len(fit) == 1 and fit[0]["used"] and fit[0]["model"] == "sphere", fit
+    assert fit[0]["a"] == 1 and fit[0]["b"] > 1 and fit[0]["to_a"] > 0
+    assert (own.owner[pole] == 1).mean() > 0.9
+    assert not (own.owner[cup] == 1).any()
+    monkeypatch.setattr(ownership, "FIT_MIN_AGREEMENT", 2.0)  # no fit trusted
+    assert (run().owner[pole] == 1).mean() < 0.2
+
+
 def test_joint_surface_fit_picks_the_simpler_model_and_refuses_noise():
     rng = np.random.default_rng(4)
     # a band of a sphere (r 13 mm) between 40 and 80 degrees from its pole, 0.3 mm scatter

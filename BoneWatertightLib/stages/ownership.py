@@ -292,21 +292,28 @@ def flood_from_markers(markers: np.ndarray, levels: np.ndarray, mask: np.ndarray
     return lab.reshape(shape[0] + 2, sy, sx)[1:-1, 1:-1, 1:-1]
 
 
-def _touching_labels(ws: np.ndarray, n: int) -> list:
-    """The pairs (a, b), a < b <= n, of labelled basins that share a voxel face."""
-    keys = set()
+def _touching_labels(ws: np.ndarray, n: int, *, pieces: bool = False,
+                     min_faces: int = 1) -> list:
+    """The pairs (a, b), a < b <= n, of labelled basins that share a voxel face; with
+    ``pieces`` also the pairs of a labelled basin a <= n and an unlabelled piece b > n. Only
+    pairs sharing at least ``min_faces`` voxel faces."""
+    counts: dict = {}
     for axis in range(3):
         a = [slice(None)] * 3
         b = [slice(None)] * 3
         a[axis] = slice(0, -1)
         b[axis] = slice(1, None)
         wa, wb = ws[tuple(a)], ws[tuple(b)]
-        sel = (wa != wb) & (wa > 0) & (wb > 0) & (wa <= n) & (wb <= n)
+        lo = np.minimum(wa, wb)
+        hi = np.maximum(wa, wb)
+        sel = (lo != hi) & (lo > 0) & (lo <= n)
+        if not pieces:
+            sel &= hi <= n
         if sel.any():
-            lo = np.minimum(wa[sel], wb[sel]).astype(np.int64)
-            hi = np.maximum(wa[sel], wb[sel]).astype(np.int64)
-            keys.update(np.unique(lo * 100000 + hi).tolist())
-    return sorted((int(k // 100000), int(k % 100000)) for k in keys)
+            keys, cnt = np.unique(lo[sel].astype(np.int64) * 100000 + hi[sel], return_counts=True)
+            for k, c in zip(keys.tolist(), cnt.tolist()):
+                counts[k] = counts.get(k, 0) + c
+    return sorted((int(k // 100000), int(k % 100000)) for k, c in counts.items() if c >= min_faces)
 
 
 def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.ndarray,
@@ -489,8 +496,16 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
 
     out = []
     pad = int(np.ceil(reach_mm / spacing)) + 2
-    boxes = ndimage.find_objects(ws, max_label=n)
-    for a, b in _touching_labels(ws, n):
+    from .jointfit import FIT_MIN_POINTS
+
+    boxes = ndimage.find_objects(ws)
+    # Labelled pairs, then a labelled bone and an unlabelled piece of bone that meet over at
+    # least as many voxel faces as a fit needs points (a hip bone nobody labelled, whose piece
+    # took the pole of a femoral head that the femur's label stops short of).
+    pairs = _touching_labels(ws, n)
+    pairs += [p for p in _touching_labels(ws, n, pieces=True, min_faces=FIT_MIN_POINTS)
+              if p[1] > n]
+    for a, b in pairs:
         ba, bb = boxes[a - 1], boxes[b - 1]
         if ba is None or bb is None:
             continue
@@ -572,7 +587,8 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
             w[flip] = mine
             c = cores[sl]
             c[flip & (c == other)] = 0
-            _grow_region(regions, mine, flip, sl)
+            if mine <= n:  # an unlabelled piece has no region
+                _grow_region(regions, mine, flip, sl)
             rec[key] = int(flip.sum())
     return out
 
