@@ -240,6 +240,7 @@ class BoneWork:
     fallbacks: FallbackLog = field(default_factory=FallbackLog)  # what fell back, and where
     plates: Optional[_plates.Plates] = None  # thin plates the thresholds miss (grid mm)
     fusion: Optional[_poisson.Fusion] = None  # what M0 joined to the Poisson surface
+    own_reference: float = float("nan")      # its cortex's contrast after eq. (15) (HU)
 
     @property
     def faces(self) -> np.ndarray:
@@ -266,6 +267,10 @@ class Workspace:
     fixed: dict = field(default_factory=dict)
     territories: dict = field(default_factory=dict)
     ct_smooth: Optional[np.ndarray] = None
+    # The full cortical contrast of the bones reconstructed together (HU; NaN: none), and
+    # the bone it came from (refine.full_contrast).
+    shared_reference: float = float("nan")
+    shared_reference_from: Optional[int] = None
 
     @property
     def d(self) -> float:
@@ -802,16 +807,39 @@ def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
             ws.prep.ct, sigma=max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / ws.d),
             mode="nearest")
 
+    def allowed_of(k):
+        return _contacts.allowed_test(ws.territories.get(k), ws.d, params.min_gap)
+
     def shape(k, part):
         bone = bones[k]
-        allowed = _contacts.allowed_test(ws.territories.get(k), ws.d, params.min_gap)
         with timed(bone.times, "deform"):
-            deform(run, ws, bone, allowed, part.stage(0.0, 0.6))
-        with timed(bone.times, "refine"):
-            if params.refine_edges:
-                refine(run, ws, bone, allowed, part.stage(0.6, 1.0))
+            deform(run, ws, bone, allowed_of(k), part.stage(0.0, 0.9 if several else 0.6))
+            if several:
+                # The contrast this bone's cortex shows, for the run's shared reference.
+                bone.own_reference = _refine.contrast_reference(
+                    bone.vertices, bone.faces, ws.ct_smooth, ws.d, ws.ht,
+                    peak_max=params.theta_max)
+        if not several:
+            with timed(bone.times, "refine"):
+                refine(run, ws, bone, allowed_of(k), part.stage(0.6, 1.0))
 
-    run.each(ws.targets, sub, shape)
+    # Several bones: all are deformed first, so that each is refined against the full
+    # cortical contrast of the thickest cortex among them (refine.full_contrast).
+    several = params.refine_edges and len(ws.targets) > 1
+    run.each(ws.targets, sub.stage(0.0, 0.5 if several else 1.0), shape)
+    if several:
+        refs = {k: b.own_reference for k, b in bones.items()
+                if k not in run.failed and np.isfinite(b.own_reference)}
+        if refs:
+            ws.shared_reference_from = max(refs, key=refs.get)
+            ws.shared_reference = float(refs[ws.shared_reference_from])
+
+        def edges(k, part):
+            with timed(bones[k].times, "refine"):
+                refine(run, ws, bones[k], allowed_of(k), part)
+
+        run.each([k for k in ws.targets if k in bones and k not in run.failed],
+                 sub.stage(0.5, 1.0), edges)
     for k in [k for k in bones if k in run.failed]:
         del bones[k]
 
@@ -848,10 +876,12 @@ def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
     params, d = run.params, ws.d
     before = bone.vertices
     plates = bone.plates
+    levels: dict = {}
     verts, shift, frac, found = refine_to_edges(
         before, bone.faces, ws.ct_smooth, d, ws.ht, edge_level=params.edge_level,
         allowed=allowed, progress=progress, fallbacks=bone.fallbacks,
-        plate_targets=plates.targets if plates is not None and plates.n else None)
+        plate_targets=plates.targets if plates is not None and plates.n else None,
+        shared_reference=ws.shared_reference, info=levels)
     # Edge support on the free surface: where the bone touches another one (no joint space
     # on the CT) no edge is expected.
     free = np.ones(len(verts), bool)
@@ -860,10 +890,17 @@ def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
                             cval=1e3) > FREE_SURFACE_MM
     support = float(found[free].mean()) if free.any() else float(found.mean())
     # Applied: some of the refinement survived its checks (else the input came back).
+    own, used = levels.get("own_reference_hu"), levels.get("reference_hu")
+    shared_from = (ws.name_of(ws.shared_reference_from)
+                   if used is not None and np.isfinite(used) and own is not None
+                   and not (np.isfinite(own) and used <= own) else None)
     bone.refinement = Refinement(applied=not np.array_equal(verts, before),
                                  fraction_with_edge=support,
                                  mean_shift_mm=float(shift.mean()),
-                                 mean_abs_shift_mm=float(np.abs(shift).mean()))
+                                 mean_abs_shift_mm=float(np.abs(shift).mean()),
+                                 own_contrast_hu=_finite_or_none(own),
+                                 contrast_hu=_finite_or_none(used),
+                                 contrast_from=shared_from)
     bone.vertices = verts
 
 
@@ -1064,7 +1101,8 @@ def evidence_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, flags) -
         min_contrast=_ownership.LABEL_LEVEL_FRACTION * (ws.ht - ws.thresholds["soft_tissue_hu"]),
         edge_level=run.params.edge_level, plates=bone.plates,
         others_distance=bone.others_distance, others_origin=origin, fill=fill,
-        free_mm=FREE_SURFACE_MM, resolution=float(max(ws.prep.ct_spacing)))
+        free_mm=FREE_SURFACE_MM, resolution=float(max(ws.prep.ct_spacing)),
+        shared_reference=ws.shared_reference)
 
 
 def cap_bone(vertices: np.ndarray, faces: np.ndarray, planes: list,
@@ -1401,6 +1439,10 @@ def _pieces(vertices, faces) -> tuple:
 def _component_volumes(vertices, faces) -> list:
     """Enclosed volume (mm^3) of each connected piece of a surface, largest first."""
     return sorted(_pieces(vertices, faces)[1].tolist(), reverse=True)
+
+
+def _finite_or_none(x) -> Optional[float]:
+    return float(x) if x is not None and np.isfinite(x) else None
 
 
 def _pair_name(k, own, name_of):

@@ -85,3 +85,42 @@ def test_the_edge_is_the_outer_layers_not_a_dip_inside_a_shell():
     # cortex lies a little outside it), not in the dip (r ~ 10.4, t ~ -2)
     assert -0.6 < np.median(t[ok]) < -0.15
     assert np.percentile(t[ok], 5) > -0.8
+
+
+def _thin_shell_ball(radius=12.0, thin=0.6, d=0.25, blur=0.8):
+    """A ball whose cortex is ``thin`` mm thick everywhere (1500 HU) around fat marrow
+    (-50 HU), in soft tissue (40 HU), blurred: a bone that never shows the full contrast."""
+    n = int(2 * (radius + 6) / d)
+    g = (np.arange(n) + 0.5) * d - (radius + 6)
+    z, y, x = np.meshgrid(g, g, g, indexing="ij")
+    r = np.sqrt(x * x + y * y + z * z)
+    ct = np.full(r.shape, 40.0)
+    ct[r <= radius] = -50.0
+    ct[(r <= radius) & (r > radius - thin)] = 1500.0
+    ct = ndimage.gaussian_filter(ct, blur / d).astype(np.float32)
+    return ct, d, radius + 6 - 0.5 * d
+
+
+def test_a_bone_thin_everywhere_is_measured_against_the_runs_full_contrast():
+    """Its own thickest cortex is thin too, so against its own contrast the model sees no
+    thin cortex and keeps the half maximum, outside the bone; against the full contrast of a
+    thick cortex in the same run (1500 - 40 HU blurred as a step: ~1460) it finds the
+    border. The larger of the two is used; a smaller shared one changes nothing."""
+    ct, d, shift = _thin_shell_ball()
+    s = sphere_mesh(12.3, 0.6)
+    v = s.vertices + shift
+    err = {}
+    for key, shared in (("own", None), ("shared", 1460.0), ("smaller", 100.0)):
+        info = {}
+        out, _, frac, _ = refine.refine_to_edges(v, s.faces, ct, d, ht=200.0,
+                                                 shared_reference=shared, info=info)
+        err[key] = float((np.linalg.norm(out - shift, axis=1) - 12.0).mean())
+        assert frac > 0.95
+        if key == "shared":
+            assert info["reference_hu"] == pytest.approx(1460.0)
+            assert info["own_reference_hu"] < 1000.0
+    assert err["own"] > 0.2
+    assert abs(err["shared"]) < 0.5 * err["own"]
+    assert err["smaller"] == pytest.approx(err["own"], abs=1e-9)
+    assert refine.full_contrast(np.nan, None) != refine.full_contrast(np.nan, None)  # NaN
+    assert refine.full_contrast(500.0, np.nan) == 500.0

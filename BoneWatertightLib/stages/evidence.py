@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh.operators import sample_field
-from .refine import contrast_reference, edge_crossings, sample_profiles
+from .refine import contrast_reference, edge_crossings, full_contrast, sample_profiles
 
 EDGE, PLATE, JOINT, LABEL_ONLY, CAP = 0, 1, 2, 3, 4
 CLASSES = ("edge", "thin plate", "joint", "label only", "cap")
@@ -52,7 +52,8 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
                     ct_smooth, spacing: float, ht: float, soft: float, min_contrast: float,
                     edge_level=None, plates=None,
                     others_distance=None, others_origin=None, fill=None,
-                    free_mm: float = 2.0, resolution: float = 0.0) -> tuple:
+                    free_mm: float = 2.0, resolution: float = 0.0,
+                    shared_reference=None) -> tuple:
     """Evidence class and confidence of each vertex (see the module doc).
 
     Parameters
@@ -80,6 +81,9 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
         Within this distance of another bone a vertex is at a joint.
     resolution : float
         The CT's coarsest spacing (mm).
+    shared_reference : float, optional
+        The run's shared full contrast (HU), as the refinement used it
+        (:func:`.refine.full_contrast`).
 
     Returns
     -------
@@ -97,8 +101,8 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
     normals = None
     if ct_smooth is not None:
         profiles = sample_profiles(vertices, faces, ct_smooth, spacing)
-        reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht,
-                                       profiles=profiles)
+        reference = full_contrast(contrast_reference(vertices, faces, ct_smooth, spacing, ht,
+                                                     profiles=profiles), shared_reference)
         level = edge_level if edge_level is not None else (
             0.5 if not np.isfinite(reference) else ("slab", reference))
         normals, t_cross, ok, contrast = edge_crossings(vertices, faces, ct_smooth, spacing,

@@ -110,23 +110,34 @@ def _valley_and_inner(t, prof, i_peak, peak):
 
 
 def contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast=MIN_CONTRAST_HU,
-                       profiles=None):
+                       profiles=None, peak_max=np.inf):
     """The bone's full cortical contrast (HU) for the blurred-slab model: the
-    SLAB_REFERENCE_PERCENTILE of peak - valley over the vertices whose profile has an edge.
-    ``profiles``: :func:`sample_profiles` of these vertices, when already sampled."""
+    SLAB_REFERENCE_PERCENTILE of peak - valley over the vertices whose profile has an edge
+    (and peaks at most ``peak_max``: metal is no cortex). ``profiles``:
+    :func:`sample_profiles` of these vertices, when already sampled."""
     if profiles is None:
         profiles = sample_profiles(vertices, faces, ct_smooth, spacing)
     _, _, _, _, peak, valley, _ = profiles
     c = peak - valley
-    ok = np.isfinite(valley) & (c >= min_contrast) & (peak >= ht)
+    ok = np.isfinite(valley) & (c >= min_contrast) & (peak >= ht) & (peak <= peak_max)
     return float(np.percentile(c[ok], SLAB_REFERENCE_PERCENTILE)) if ok.any() else np.nan
+
+
+def full_contrast(own, shared):
+    """The full cortical contrast a bone's edge level is measured against: its own
+    :func:`contrast_reference`, or the run's shared one when that is larger (cortical bone has
+    about one density: a bone whose cortex is thin everywhere, a rib or a thin shell, never
+    shows the full contrast itself, and its half maximum lies outside it). NaN when neither
+    is known."""
+    vals = [v for v in (own, shared) if v is not None and np.isfinite(v)]
+    return float(max(vals)) if vals else np.nan
 
 
 def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
                     max_shift=MAX_SHIFT_MM, min_contrast=MIN_CONTRAST_HU,
                     smoothness=REFINE_ALPHA, damping=REFINE_BETA, passes=REFINE_PASSES,
                     allowed=None, progress=None, plate_targets=None,
-                    fallbacks=None):
+                    fallbacks=None, shared_reference=None, info=None):
     """Move each vertex along its normal to the CT profile's edge at ``edge_level``.
 
     Repeats :func:`refine_pass` (vertices held back by the back-off get another chance once
@@ -162,6 +173,12 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
     fallbacks : BoneWatertightLib.report.FallbackLog, optional
         Notes every step that fell back (the automatic level, a pass or verification round
         whose result was discarded, vertices held at their verified position).
+    shared_reference : float, optional
+        The full cortical contrast (HU) of the bones reconstructed together (the largest of
+        their :func:`contrast_reference`): the automatic level measures against it where it
+        exceeds this bone's own (:func:`full_contrast`).
+    info : dict, optional
+        Filled with ``own_reference_hu`` and ``reference_hu`` (the contrast used).
 
     Returns
     -------
@@ -183,8 +200,11 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
 
     first = sample_profiles(vertices, faces, ct_smooth, spacing)  # the level's and pass 1's
     if edge_level is None:
-        reference = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast,
-                                       profiles=first)
+        own = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast,
+                                 profiles=first)
+        reference = full_contrast(own, shared_reference)
+        if info is not None:
+            info.update(own_reference_hu=own, reference_hu=reference)
         edge_level = 0.5 if not np.isfinite(reference) else ("slab", reference)
         if edge_level == 0.5:
             note("no profile has a cortical contrast for the automatic edge level: the half "
