@@ -340,3 +340,31 @@ def test_a_bone_cut_into_two_pieces_by_the_image_boundary_is_refused_clearly():
     with pytest.raises(errors.PlausibilityError, match=r"separate piece of bone that the surface "
                                                       r"does not reach"):
         reconstruct(ct, mask, Parameters(spacing=1.0, iterations=2, views=6))
+
+
+def test_remesh_joins_a_process_of_the_bone_that_the_surface_missed():
+    """M0 (a ball, r 8 mm) misses a rod of the bone's own solid reaching 10 mm beyond it (a
+    thin process Poisson detached): the remesh joins it. The solid's partial-volume rim along
+    the surface (1 mm, within the reach) and a speck not connected to the surface are not."""
+    from BoneWatertightLib.stages.poisson import Fusion
+
+    h = 0.5
+    n = 64
+    g = (np.arange(n) - (n - 1) / 2) * h          # -15.75 .. 15.75 mm, centred at 0
+    zz, yy, xx = np.meshgrid(g, g, g, indexing="ij")
+    r = np.sqrt(xx ** 2 + yy ** 2 + zz ** 2)
+    rod = (np.hypot(xx, yy) <= 1.5) & (zz > 0) & (zz <= 15.0)
+    speck = (np.sqrt((xx + 13) ** 2 + (yy + 13) ** 2 + zz ** 2) <= 1.5)
+    solid = (r <= 9.0) | rod | speck
+    ball = sphere_mesh(8.0, 0.5)
+    fusion = Fusion(label_origin=np.array([g[0]] * 3), label_spacing=h, solid=solid,
+                    solid_reach_mm=2.0)
+    out = remesh(ball, 1.0, fusion=fusion)
+    v = out.vertices
+    assert fusion.info["joined_pieces"] == 1 and fusion.info["joined_bone_mm3"] > 40.0
+    assert v[:, 2].max() > 12.0                            # most of the rod (its end smoothed)
+    side = np.abs(v[:, 2]) < 2.0
+    assert np.linalg.norm(v[side], axis=1).max() < 8.6     # no rim joined
+    assert np.linalg.norm(v - [-13, -13, 0], axis=1).min() > 5.0  # no speck
+    alone = remesh(ball, 1.0)
+    assert alone.vertices[:, 2].max() < 8.6

@@ -257,6 +257,12 @@ class Fusion:
     # the surface is kept out of it.
     carve: np.ndarray = None
     bone: np.ndarray = None
+    # (z, y, x) bool on the label's grid: the bone's own solid occupancy on the CT (owned W_HT,
+    # solidified). Parts of it that the Poisson surface misses by more than ``solid_reach_mm``
+    # are joined with the solid between them and the surface (a thin process that Poisson at
+    # depth 7 detaches as a small component, which the largest-component rule drops).
+    solid: np.ndarray = None
+    solid_reach_mm: float = 3.0
 
 
 def surface_genus(surface: Surface) -> int:
@@ -335,6 +341,13 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         hi = np.maximum(hi, fusion.plates_box[1])
     lo = lo - REMESH_PAD_STEPS * h
     hi = hi + REMESH_PAD_STEPS * h
+    if fusion is not None and fusion.solid is not None and fusion.solid.any():
+        # Over the solid too, by whole steps: the lattice stays where it was, so a surface
+        # that misses nothing is remeshed exactly as without the solid.
+        nz = np.argwhere(fusion.solid)[:, ::-1] * fusion.label_spacing + fusion.label_origin
+        pad = REMESH_PAD_STEPS * h
+        lo = lo - np.ceil(np.maximum(lo - (nz.min(axis=0) - pad), 0.0) / h) * h
+        hi = hi + np.ceil(np.maximum(nz.max(axis=0) + pad - hi, 0.0) / h) * h
     dims = np.ceil((hi - lo) / h).astype(int) + 1
     occ = inside_mask(surface, tuple(int(v) for v in dims[::-1]), h, lo)
     lab, n = ndimage.label(occ)
@@ -348,6 +361,8 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         sizes[0] = 0
         occ = lab == int(np.argmax(sizes))
     occ = ndimage.binary_fill_holes(occ)
+    if fusion is not None and fusion.solid is not None:
+        occ = _join_missed_bone(occ, lo, h, fusion)
     field = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
     if fusion is not None and fusion.plates is not None:
         np.maximum(field, fusion.plates(field.shape, lo, h), out=field)
@@ -361,6 +376,34 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         # A Poisson surface only a few grid steps across smooths away below the 0.5 level.
         raise _too_small(edge_length, out.n_faces if out else 0)
     return out
+
+
+def _join_missed_bone(occ: np.ndarray, lo, h: float, fusion: Fusion) -> np.ndarray:
+    """occ joined by the bone of ``fusion.solid`` it misses where that bone reaches farther
+    than ``fusion.solid_reach_mm`` from it (a process, not the partial-volume shell along the
+    surface), at least reach^3 of it so far out, connected to occ through the solid: that
+    far part with the solid between it and occ (within the reach of the far part)."""
+    from ..mesh.distance import distance_outside
+
+    solid = _label_on(fusion, occ.shape, np.asarray(lo, np.float64), h, fusion.solid)
+    missed = solid & ~occ
+    reach = max(fusion.solid_reach_mm, 2.0 * h)
+    dist_occ = distance_outside(occ, h)
+    far = missed & (dist_occ > reach)
+    if not far.any():
+        fusion.info.update(joined_bone_mm3=0.0, joined_pieces=0)
+        return occ
+    pieces, n = ndimage.label(missed, structure=np.ones((3, 3, 3), bool))
+    touching = np.unique(pieces[missed & (dist_occ <= 1.5 * h)])
+    big = np.bincount(pieces[far], minlength=n + 1) * h ** 3 >= reach ** 3
+    ids = np.intersect1d(np.flatnonzero(big), touching[touching > 0])
+    if not len(ids):
+        fusion.info.update(joined_bone_mm3=0.0, joined_pieces=0)
+        return occ
+    mine = np.isin(pieces, ids)
+    keep = mine & ((far & mine) | (distance_outside(far & mine, h) <= reach + h))
+    fusion.info.update(joined_bone_mm3=float(keep.sum() * h ** 3), joined_pieces=int(len(ids)))
+    return occ | keep
 
 
 def _too_small(edge_length: float, n_faces: int) -> ReconstructionError:
