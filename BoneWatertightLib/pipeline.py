@@ -829,7 +829,7 @@ def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
                 bone.own_reference = _refine.contrast_reference(
                     bone.vertices, bone.faces, ws.ct_smooth, ws.d, ws.ht,
                     peak_max=params.theta_max)
-        if not several:
+        if params.refine_edges and not several:
             with timed(bone.times, "refine"):
                 refine(run, ws, bone, allowed_of(k), part.stage(0.6, 1.0))
 
