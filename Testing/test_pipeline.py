@@ -368,3 +368,23 @@ def test_remesh_joins_a_process_of_the_bone_that_the_surface_missed():
     assert np.linalg.norm(v - [-13, -13, 0], axis=1).min() > 5.0  # no speck
     alone = remesh(ball, 1.0)
     assert alone.vertices[:, 2].max() < 8.6
+
+
+def test_remesh_drops_a_join_that_would_add_a_tunnel():
+    """A handle of the solid (a bar 6 mm beyond the ball, joined to it by two posts: lace of
+    a thin plate, not a process) would make a tunnel: the join is dropped and reported."""
+    from BoneWatertightLib.stages.poisson import Fusion, surface_genus
+
+    h = 0.5
+    n = 64
+    g = (np.arange(n) - (n - 1) / 2) * h
+    zz, yy, xx = np.meshgrid(g, g, g, indexing="ij")
+    r = np.sqrt(xx ** 2 + yy ** 2 + zz ** 2)
+    post = (np.hypot(np.abs(xx) - 5.0, yy) <= 1.5) & (zz > 0) & (zz <= 14.0)
+    bar = (np.hypot(yy, zz - 13.0) <= 1.5) & (np.abs(xx) <= 6.5)
+    solid = (r <= 8.5) | post | bar
+    fusion = Fusion(label_origin=np.array([g[0]] * 3), label_spacing=h, solid=solid,
+                    solid_reach_mm=2.0)
+    out = remesh(sphere_mesh(8.0, 0.5), 1.0, fusion=fusion)
+    assert surface_genus(out) == 0 and out.vertices[:, 2].max() < 9.0
+    assert fusion.info["joined_pieces"] == 0 and fusion.info["join_dropped_mm3"] > 40.0

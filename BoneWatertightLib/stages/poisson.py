@@ -361,8 +361,35 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         sizes[0] = 0
         occ = lab == int(np.argmax(sizes))
     occ = ndimage.binary_fill_holes(occ)
+    joined = None
     if fusion is not None and fusion.solid is not None:
-        occ = _join_missed_bone(occ, lo, h, fusion)
+        joined = _join_missed_bone(occ, lo, h, fusion)
+    if joined is not None and joined is not occ:
+        # The join is kept only when it adds no tunnel: the lace of a thin plate that the
+        # thresholds hold and Poisson smoothed over is no process of the bone.
+        before = dict(fusion.info)
+        plain = _contour_fused(occ, lo, h, fusion, smooth_iterations)
+        plain_state = (dict(fusion.info), fusion.fill_mask)
+        fusion.info, fusion.fill_mask = before, None
+        out = _contour_fused(joined, lo, h, fusion, smooth_iterations)
+        if plain is not None and (out is None
+                                  or surface_genus(out) > surface_genus(plain)):
+            dropped = fusion.info.get("joined_bone_mm3", 0.0)
+            fusion.info, fusion.fill_mask = plain_state
+            fusion.info.update(joined_bone_mm3=0.0, joined_pieces=0, join_dropped_mm3=dropped)
+            out = plain
+    else:
+        out = _contour_fused(occ, lo, h, fusion, smooth_iterations)
+    if out is None or out.n_faces < MIN_REMESH_FACES:
+        # A Poisson surface only a few grid steps across smooths away below the 0.5 level.
+        raise _too_small(edge_length, out.n_faces if out else 0)
+    return out
+
+
+def _contour_fused(occ: np.ndarray, lo, h: float, fusion: Optional[Fusion],
+                   smooth_iterations: int) -> Optional[Surface]:
+    """The 0.5 contour of the smoothed occupancy ``occ`` with the fusion's plates, carve and
+    tunnel fill (see :func:`remesh`); None when nothing reaches the level."""
     field = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
     if fusion is not None and fusion.plates is not None:
         np.maximum(field, fusion.plates(field.shape, lo, h), out=field)
@@ -372,9 +399,6 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
     if out is not None and fusion is not None and fusion.label is not None \
             and fusion.genus is not None:
         out = _fill_tunnels(out, field, lo, h, fusion, smooth_iterations)
-    if out is None or out.n_faces < MIN_REMESH_FACES:
-        # A Poisson surface only a few grid steps across smooths away below the 0.5 level.
-        raise _too_small(edge_length, out.n_faces if out else 0)
     return out
 
 
