@@ -885,6 +885,11 @@ def _ball_in_cup(hide_deg=35.0, short=5.0, n=56):
     return ct, labels, r, z - c[0]
 
 
+def _ball_in_cup_ownership(ct, labels, n):
+    return ownership.compute_ownership(ct, labels, n, 1.0, h0=400.0, ht=200.0, theta_max=2500.0,
+                                       soft=40.0, contrast=1160.0, coarseness=1.0, band_mm=3.0)
+
+
 def test_the_seen_part_of_a_joint_is_carried_over_the_hidden_pole(monkeypatch):
     """Slices along a ball joint hide its pole; the cup's label took 5 voxels of the ball
     there, beyond what the joint cut re-decides. A sphere fitted to the joint space seen
@@ -892,9 +897,7 @@ def test_the_seen_part_of_a_joint_is_carried_over_the_hidden_pole(monkeypatch):
     ct, labels, r, dz = _ball_in_cup()
 
     def run():
-        return ownership.compute_ownership(ct, labels, 2, 1.0, h0=400.0, ht=200.0,
-                                           theta_max=2500.0, soft=40.0, contrast=1160.0,
-                                           coarseness=1.0, band_mm=3.0)
+        return _ball_in_cup_ownership(ct, labels, 2)
 
     pole = (r <= 11.5) & (dz > 7)
     cup = (r >= 14.5) & (r <= 17) & (dz / np.maximum(r, 1e-9) > -0.1)
@@ -917,9 +920,7 @@ def test_the_hidden_pole_is_carried_against_an_unlabelled_cup(monkeypatch):
     labels[labels == 2] = 0
 
     def run():
-        return ownership.compute_ownership(ct, labels, 1, 1.0, h0=400.0, ht=200.0,
-                                           theta_max=2500.0, soft=40.0, contrast=1160.0,
-                                           coarseness=1.0, band_mm=3.0)
+        return _ball_in_cup_ownership(ct, labels, 1)
 
     pole = (r <= 11.5) & (dz > 9)
     cup = (r >= 14.5) & (r <= 17) & (dz / np.maximum(r, 1e-9) > -0.1)

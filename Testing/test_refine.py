@@ -23,16 +23,17 @@ def test_slab_level_is_the_half_maximum_for_thick_cortex_and_rises_for_thin():
                                                                  abs=2e-3)
 
 
-def _half_thin_ball(radius=12.0, thin=0.8, d=0.25, blur=0.8):
+def _half_thin_ball(radius=12.0, thin=0.8, d=0.25, blur=0.8, solid_top=True):
     """A ball whose upper half (z > 0) is solid cortex (1500 HU) and whose lower half is a
-    cortex ``thin`` mm thick around fat marrow (-50 HU), in soft tissue (40 HU), blurred."""
+    cortex ``thin`` mm thick around fat marrow (-50 HU), in soft tissue (40 HU), blurred;
+    without ``solid_top`` the cortex is thin everywhere."""
     n = int(2 * (radius + 6) / d)
     g = (np.arange(n) + 0.5) * d - (radius + 6)
     z, y, x = np.meshgrid(g, g, g, indexing="ij")
     r = np.sqrt(x * x + y * y + z * z)
     ct = np.full(r.shape, 40.0)
     ct[r <= radius] = -50.0
-    ct[(r <= radius) & ((z > 0) | (r > radius - thin))] = 1500.0
+    ct[(r <= radius) & (((z > 0) & solid_top) | (r > radius - thin))] = 1500.0
     ct = ndimage.gaussian_filter(ct, blur / d).astype(np.float32)
     return ct, d, radius + 6 - 0.5 * d  # grid millimetres = index * d
 
@@ -87,26 +88,12 @@ def test_the_edge_is_the_outer_layers_not_a_dip_inside_a_shell():
     assert np.percentile(t[ok], 5) > -0.8
 
 
-def _thin_shell_ball(radius=12.0, thin=0.6, d=0.25, blur=0.8):
-    """A ball whose cortex is ``thin`` mm thick everywhere (1500 HU) around fat marrow
-    (-50 HU), in soft tissue (40 HU), blurred: a bone that never shows the full contrast."""
-    n = int(2 * (radius + 6) / d)
-    g = (np.arange(n) + 0.5) * d - (radius + 6)
-    z, y, x = np.meshgrid(g, g, g, indexing="ij")
-    r = np.sqrt(x * x + y * y + z * z)
-    ct = np.full(r.shape, 40.0)
-    ct[r <= radius] = -50.0
-    ct[(r <= radius) & (r > radius - thin)] = 1500.0
-    ct = ndimage.gaussian_filter(ct, blur / d).astype(np.float32)
-    return ct, d, radius + 6 - 0.5 * d
-
-
 def test_a_bone_thin_everywhere_is_measured_against_the_runs_full_contrast():
     """Its own thickest cortex is thin too, so against its own contrast the model sees no
     thin cortex and keeps the half maximum, outside the bone; against the full contrast of a
     thick cortex in the same run (1500 - 40 HU blurred as a step: ~1460) it finds the
     border. The larger of the two is used; a smaller shared one changes nothing."""
-    ct, d, shift = _thin_shell_ball()
+    ct, d, shift = _half_thin_ball(thin=0.6, solid_top=False)
     s = sphere_mesh(12.3, 0.6)
     v = s.vertices + shift
     err = {}
