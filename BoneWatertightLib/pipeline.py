@@ -241,6 +241,7 @@ class BoneWork:
     plates: Optional[_plates.Plates] = None  # thin plates the thresholds miss (grid mm)
     fusion: Optional[_poisson.Fusion] = None  # what M0 joined to the Poisson surface
     own_reference: float = float("nan")      # its cortex's contrast after eq. (15) (HU)
+    profiles: Optional[tuple] = None         # its CT profiles then (refine.sample_profiles)
 
     @property
     def faces(self) -> np.ndarray:
@@ -826,9 +827,12 @@ def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
             deform(run, ws, bone, allowed_of(k), part.stage(0.0, 0.9 if several else 0.6))
             if several:
                 # The contrast this bone's cortex shows, for the run's shared reference.
+                # (Its profiles are the refinement's first ones: kept for it.)
+                bone.profiles = _refine.sample_profiles(bone.vertices, bone.faces,
+                                                        ws.ct_smooth, ws.d)
                 bone.own_reference = _refine.contrast_reference(
                     bone.vertices, bone.faces, ws.ct_smooth, ws.d, ws.ht,
-                    peak_max=params.theta_max)
+                    profiles=bone.profiles, peak_max=params.theta_max)
         if params.refine_edges and not several:
             with timed(bone.times, "refine"):
                 refine(run, ws, bone, allowed_of(k), part.stage(0.6, 1.0))
@@ -891,7 +895,8 @@ def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
         before, bone.faces, ws.ct_smooth, d, ws.ht, edge_level=params.edge_level,
         allowed=allowed, progress=progress, fallbacks=bone.fallbacks,
         plate_targets=plates.targets if plates is not None and plates.n else None,
-        shared_reference=ws.shared_reference, info=levels)
+        shared_reference=ws.shared_reference, info=levels, profiles=bone.profiles)
+    bone.profiles = None
     # Edge support on the free surface: where the bone touches another one (no joint space
     # on the CT) no edge is expected.
     free = np.ones(len(verts), bool)
@@ -901,9 +906,9 @@ def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
     support = float(found[free].mean()) if free.any() else float(found.mean())
     # Applied: some of the refinement survived its checks (else the input came back).
     own, used = levels.get("own_reference_hu"), levels.get("reference_hu")
+    # Another bone's contrast was used when it exceeds this one's own (or that is unknown).
     shared_from = (ws.name_of(ws.shared_reference_from)
-                   if used is not None and np.isfinite(used) and own is not None
-                   and not (np.isfinite(own) and used <= own) else None)
+                   if used is not None and np.isfinite(used) and not own >= used else None)
     bone.refinement = Refinement(applied=not np.array_equal(verts, before),
                                  fraction_with_edge=support,
                                  mean_shift_mm=float(shift.mean()),

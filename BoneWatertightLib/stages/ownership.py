@@ -292,11 +292,10 @@ def flood_from_markers(markers: np.ndarray, levels: np.ndarray, mask: np.ndarray
     return lab.reshape(shape[0] + 2, sy, sx)[1:-1, 1:-1, 1:-1]
 
 
-def _touching_labels(ws: np.ndarray, n: int, *, pieces: bool = False,
-                     min_faces: int = 1) -> list:
+def _touching_labels(ws: np.ndarray, n: int, *, piece_faces: int | None = None) -> list:
     """The pairs (a, b), a < b <= n, of labelled basins that share a voxel face; with
-    ``pieces`` also the pairs of a labelled basin a <= n and an unlabelled piece b > n. Only
-    pairs sharing at least ``min_faces`` voxel faces."""
+    ``piece_faces`` then the pairs of a labelled basin a <= n and an unlabelled piece b > n
+    that share at least that many voxel faces. Each group sorted."""
     counts: dict = {}
     for axis in range(3):
         a = [slice(None)] * 3
@@ -307,13 +306,15 @@ def _touching_labels(ws: np.ndarray, n: int, *, pieces: bool = False,
         lo = np.minimum(wa, wb)
         hi = np.maximum(wa, wb)
         sel = (lo != hi) & (lo > 0) & (lo <= n)
-        if not pieces:
+        if piece_faces is None:
             sel &= hi <= n
         if sel.any():
             keys, cnt = np.unique(lo[sel].astype(np.int64) * 100000 + hi[sel], return_counts=True)
             for k, c in zip(keys.tolist(), cnt.tolist()):
                 counts[k] = counts.get(k, 0) + c
-    return sorted((int(k // 100000), int(k % 100000)) for k, c in counts.items() if c >= min_faces)
+    pairs = sorted((int(k // 100000), int(k % 100000)) for k in counts)
+    return ([p for p in pairs if p[1] <= n]
+            + [p for p in pairs if p[1] > n and counts[p[0] * 100000 + p[1]] >= piece_faces])
 
 
 def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.ndarray,
@@ -492,20 +493,15 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         ``radius_mm``, ``points``, ``inliers``, ``agreement``, ``to_a`` / ``to_b`` (voxels
         moved), ``used`` (False with a ``reason`` when the fit was not trusted).
     """
-    from .jointfit import fit_joint_surface
+    from .jointfit import FIT_MIN_POINTS, fit_joint_surface
 
     out = []
     pad = int(np.ceil(reach_mm / spacing)) + 2
-    from .jointfit import FIT_MIN_POINTS
-
     boxes = ndimage.find_objects(ws)
     # Labelled pairs, then a labelled bone and an unlabelled piece of bone that meet over at
     # least as many voxel faces as a fit needs points (a hip bone nobody labelled, whose piece
     # took the pole of a femoral head that the femur's label stops short of).
-    pairs = _touching_labels(ws, n)
-    pairs += [p for p in _touching_labels(ws, n, pieces=True, min_faces=FIT_MIN_POINTS)
-              if p[1] > n]
-    for a, b in pairs:
+    for a, b in _touching_labels(ws, n, piece_faces=FIT_MIN_POINTS):
         ba, bb = boxes[a - 1], boxes[b - 1]
         if ba is None or bb is None:
             continue

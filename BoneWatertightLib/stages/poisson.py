@@ -361,10 +361,10 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         sizes[0] = 0
         occ = lab == int(np.argmax(sizes))
     occ = ndimage.binary_fill_holes(occ)
-    joined = None
+    joined = occ
     if fusion is not None and fusion.solid is not None:
         joined = _join_missed_bone(occ, lo, h, fusion)
-    if joined is not None and joined is not occ:
+    if joined is not occ:
         # The join is kept only when it adds no tunnel: the lace of a thin plate that the
         # thresholds hold and Poisson smoothed over is no process of the bone.
         before = dict(fusion.info)
@@ -425,7 +425,7 @@ def _join_missed_bone(occ: np.ndarray, lo, h: float, fusion: Fusion) -> np.ndarr
         fusion.info.update(joined_bone_mm3=0.0, joined_pieces=0)
         return occ
     mine = np.isin(pieces, ids)
-    keep = mine & ((far & mine) | (distance_outside(far & mine, h) <= reach + h))
+    keep = mine & (far | (distance_outside(far & mine, h) <= reach + h))
     fusion.info.update(joined_bone_mm3=float(keep.sum() * h ** 3), joined_pieces=int(len(ids)))
     return occ | keep
 

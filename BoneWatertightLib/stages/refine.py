@@ -137,7 +137,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
                     max_shift=MAX_SHIFT_MM, min_contrast=MIN_CONTRAST_HU,
                     smoothness=REFINE_ALPHA, damping=REFINE_BETA, passes=REFINE_PASSES,
                     allowed=None, progress=None, plate_targets=None,
-                    fallbacks=None, shared_reference=None, info=None):
+                    fallbacks=None, shared_reference=None, info=None, profiles=None):
     """Move each vertex along its normal to the CT profile's edge at ``edge_level``.
 
     Repeats :func:`refine_pass` (vertices held back by the back-off get another chance once
@@ -179,6 +179,8 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         exceeds this bone's own (:func:`full_contrast`).
     info : dict, optional
         Filled with ``own_reference_hu`` and ``reference_hu`` (the contrast used).
+    profiles : tuple, optional
+        :func:`sample_profiles` of ``vertices``, when already sampled.
 
     Returns
     -------
@@ -198,7 +200,8 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         if fallbacks is not None:
             fallbacks.add("refine", what, count, unit, where)
 
-    first = sample_profiles(vertices, faces, ct_smooth, spacing)  # the level's and pass 1's
+    first = profiles if profiles is not None else sample_profiles(vertices, faces, ct_smooth,
+                                                                  spacing)  # level's, pass 1's
     if edge_level is None:
         own = contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast,
                                  profiles=first)
