@@ -757,8 +757,11 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
                              genus=_plaus.segment_genus(trusted, d, ws.prep.coarseness),
                              close_mm=(ws.prep.coarseness,), bone=masks.w_ht)
     # A thin process of the bone's own (a sacral tip at 3 mm) that Poisson at depth 7
-    # detaches as a small component is joined back from the bone the thresholds hold.
-    fusion.solid = masks.occupancy
+    # detaches as a small component is joined back from the bone the thresholds hold -
+    # inside the image: beyond a cap plane the grid only continues the border slice.
+    planes = ws.prep.caps.get(bone.k, [])
+    fusion.solid = (masks.occupancy & _plaus.image_mask(masks.box, planes, d) if planes
+                    else masks.occupancy)
     fusion.solid_reach_mm = ws.prep.coarseness
     # Where neither the CT nor the segment has bone, M0 has none either: Poisson closes over
     # what the views do not see into (a curved canal, a deep notch).
