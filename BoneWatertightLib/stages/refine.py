@@ -38,11 +38,6 @@ PEAK_REACH_MM = 0.5
 # VALLEY_MIN_REACH_MM outside the vertex.
 VALLEY_REACH_MM = 2.0
 VALLEY_MIN_REACH_MM = 1.5
-# On a coarse working grid (it follows a coarse CT: prepare.AUTO_CT_FRACTION) the profile's
-# outside (its range, the valley's reach) grows by spacing / PROFILE_FINE_SPACING_MM: a CT's blur
-# spreads a cortex's outer flank over a few of its voxels, and a valley sought closer lies on
-# the flank (a 3 mm CT: the contrast of half the vertices then reads below MIN_CONTRAST_HU).
-PROFILE_FINE_SPACING_MM = 0.5
 # A profile that rises above its edge level again after the first crossing (within the peak's
 # reach) is anchored on that outer layer's peak instead, at most this many times.
 REANCHOR_ROUNDS = 2
@@ -61,22 +56,20 @@ OUTSIDE_HU = -1000.0
 # thinner than the blur, whose half maximum lies outside the bone. The full contrast is the
 # SLAB_REFERENCE_PERCENTILE of the bone's own profile contrasts (its thick cortex: the 90th
 # percentile is the densest spots of a cortex whose density varies by +-15 %, and the model
-# then puts thin-cortex borders inward), or more (full_contrast). The interior is read as the
-# profile's lowest value within SLAB_INNER_MM inside the peak: still on the blurred cortex'
-# flank when the blur is wide, so it overstates t and the level errs toward the half maximum
-# (outward), never inward of the model.
+# then puts thin-cortex borders inward), or more (full_contrast). The interior is read as the profile's lowest value within SLAB_INNER_MM
+# inside the peak: still on the blurred cortex' flank when the blur is wide, so it overstates t
+# and the level errs toward the half maximum (outward), never inward of the model.
 SLAB_REFERENCE_PERCENTILE = 75.0
-# The least full contrast (HU above the soft tissue) a bone's cortex is assumed to have. A CT
-# whose blur is wider than every cortex it shows (3 mm voxels; a bone thin everywhere)
-# measures less than its cortex has, and the half maximum then lies outside the bone. Compact
-# bone is 1000-2000 HU on clinical CT; the floor is well below that, at the least the
-# project calls bone-like (a 700 HU cortex in soft tissue, Testing/test_properties_strategies):
-# an image whose cortex is fainter than the floor has its border put inward (measured: a
-# 700 HU, 1.5 mm cortex at 1 mm voxels 0.17 mm inside), a denser one still gets part of the
-# correction (3 mm vertebrae of the anatomical phantoms, cortex 1250 HU: volume 1.13-1.18 of
-# the truth -> 1.03-1.08; with 1000 HU, 0.98-1.01, but that 700 HU cortex 0.43 mm inside).
-CORTEX_CONTRAST_MIN_HU = 650.0
-SLAB_LEVEL_RANGE = (0.5, 0.9)
+# The least full contrast (HU above the soft tissue) of compact bone: cortical bone is
+# 1000-2000 HU on clinical CT at 80-140 kV, soft tissue 20-60 HU. A CT whose blur is wider
+# than every cortex it shows (3 mm voxels; a bone thin everywhere) measures less than this.
+CORTEX_CONTRAST_MIN_HU = 1000.0
+# Levels above 0.8 of the peak lie on the profile's flat top, where a small error of the level
+# (of the full contrast, of the interior read on a noisy profile) moves the crossing far:
+# measured on the anatomical phantoms at 3 mm, a cap of 0.9 put the vertebrae 0.2-0.3 mm inside
+# their truth, 0.8 within 0.06 mm; a noise-free cortex 0.6 mm over fat (blur 0.8 mm) stays
+# 0.23 mm outside at 0.8 (0.07 mm at 0.9).
+SLAB_LEVEL_RANGE = (0.5, 0.8)
 SLAB_INNER_MM = 2.0
 # The model's table: r on a grid of q (peak / full contrast) and t (interior / full contrast).
 SLAB_TABLE_STEPS = (101, 51)
@@ -135,30 +128,24 @@ def sample_profiles(vertices, faces, ct_smooth, spacing):
     """CT profiles along the vertex normals: (normals, t (k,), profiles (n, k), peak index,
     peak, valley, inner): inner is the lowest value within SLAB_INNER_MM inside the peak."""
     n = vertex_normals(vertices, faces)
-    scale = _outside_scale(spacing)
-    t = np.arange(PROFILE_RANGE_MM[0], scale * PROFILE_RANGE_MM[1] + 1e-9, PROFILE_STEP_MM)
+    t = np.arange(PROFILE_RANGE_MM[0], PROFILE_RANGE_MM[1] + 1e-9, PROFILE_STEP_MM)
     pts = vertices[:, None, :] + t[None, :, None] * n[:, None, :]
     prof = sample_field(ct_smooth, pts.reshape(-1, 3), spacing, order=1,
                         cval=OUTSIDE_HU).reshape(len(vertices), len(t))
     i_peak = np.argmax(prof[:, :int(np.count_nonzero(t <= PEAK_REACH_MM))], axis=1)
     peak = prof[np.arange(len(prof)), i_peak]
-    valley, inner = _valley_and_inner(t, prof, i_peak, peak, scale)
+    valley, inner = _valley_and_inner(t, prof, i_peak, peak)
     return n, t, prof, i_peak, peak, valley, inner
 
 
-def _outside_scale(spacing: float) -> float:
-    """The factor of the profile's outside distances (see PROFILE_FINE_SPACING_MM)."""
-    return max(1.0, float(spacing) / PROFILE_FINE_SPACING_MM)
-
-
-def _valley_and_inner(t, prof, i_peak, peak, scale=1.0):
+def _valley_and_inner(t, prof, i_peak, peak):
     """(valley, inner) of profiles ``prof`` (n, k) whose peak is at ``i_peak`` (n,), see
     :func:`sample_profiles`."""
     # Valley: the lowest value within 2 mm outside the peak (stops before a neighbour's cortex).
     # The window always reaches 1.5 mm outside the vertex, so a flat interior (peak deep inside)
     # still sees the soft tissue; a neighbour's cortex beyond the gap never lowers the minimum.
     cols = np.arange(len(t))[None, :]
-    reach = np.maximum(t[i_peak] + scale * VALLEY_REACH_MM, scale * VALLEY_MIN_REACH_MM)
+    reach = np.maximum(t[i_peak] + VALLEY_REACH_MM, VALLEY_MIN_REACH_MM)
     outside = (cols > i_peak[:, None]) & (t[None, :] <= reach[:, None])
     valley = np.min(np.where(outside, prof, np.inf), axis=1)
     behind = (cols < i_peak[:, None]) & (t[None, :] >= (t[i_peak] - SLAB_INNER_MM)[:, None])
@@ -391,8 +378,7 @@ def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
         i_peak, peak, valley, inner = (a.copy() for a in (i_peak, peak, valley, inner))
         i_peak[r] = i_new
         peak[r] = prof[r, i_new]
-        valley[r], inner[r] = _valley_and_inner(t, prof[r], i_new, peak[r],
-                                                _outside_scale(spacing))
+        valley[r], inner[r] = _valley_and_inner(t, prof[r], i_new, peak[r])
     k1 = np.maximum(first - 1, 0)
     g0 = prof[rows, k1]
     g1 = prof[rows, first]
