@@ -321,8 +321,8 @@ class Parameters:
     edge_level: Optional[float] = param(
         None, "refine", "Advanced", label="Edge level", minimum=0.3, maximum=0.9, step=0.05,
         decimals=2,
-        auto="per vertex by the blurred two-layer model (cortex over marrow): 0.5 (half "
-             "maximum) at thick cortex, up to 0.8 where the cortex is thinner than the blur",
+        auto="per vertex by the blurred-slab model: 0.5 (half maximum) at thick cortex, up to "
+             "0.9 where the cortex is thinner than the blur",
         help="Where the refined edge sits between the outside valley (0) and the bone peak (1) "
              "of the CT profile. Thin cortex blurred by the scanner puts the half maximum "
              "outside the true border; auto corrects for it from each profile's contrast")

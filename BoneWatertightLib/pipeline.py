@@ -78,9 +78,6 @@ BAND_COARSENESS = 1.0
 # at HT (the segment's own uncertainty and the CT's partial-volume foot stay untouched).
 CARVE_SEGMENT_COARSENESS = 0.5
 CARVE_BONE_MM = 1.0
-# Refinement.contrast_from when the full cortical contrast was compact bone's least one
-# (refine.CORTEX_CONTRAST_MIN_HU): no bone of the run shows a cortex that thick.
-COMPACT_BONE_SOURCE = "compact bone (least contrast)"
 # Rounds of extra contact passes (each with one voxel more margin) while a pair still crosses;
 # they move only the vertices within CONTACT_RETRY_REACH_MM (+ the extra margin) of a face
 # that crosses (the passes' own rings of neighbours follow within that reach).
@@ -912,13 +909,9 @@ def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
     support = float(found[free].mean()) if free.any() else float(found.mean())
     # Applied: some of the refinement survived its checks (else the input came back).
     own, used = levels.get("own_reference_hu"), levels.get("reference_hu")
-    # Where the contrast used came from when not from this bone's own cortex: another bone of
-    # the run, or compact bone's least contrast (refine.full_contrast).
-    shared_from = None
-    if used is not None and np.isfinite(used) and not own >= used:
-        shared_from = (ws.name_of(ws.shared_reference_from)
-                       if ws.shared_reference_from is not None and used == ws.shared_reference
-                       else COMPACT_BONE_SOURCE)
+    # Another bone's contrast was used when it exceeds this one's own (or that is unknown).
+    shared_from = (ws.name_of(ws.shared_reference_from)
+                   if used is not None and np.isfinite(used) and not own >= used else None)
     bone.refinement = Refinement(applied=not np.array_equal(verts, before),
                                  fraction_with_edge=support,
                                  mean_shift_mm=float(shift.mean()),

@@ -93,9 +93,8 @@ class Refinement:
     fraction_with_edge: Optional[float] = None
     mean_shift_mm: Optional[float] = None
     mean_abs_shift_mm: Optional[float] = None
-    # The two-layer model's full cortical contrast (HU): the bone's own, the one used, and
-    # where that came from when not from its own cortex: the bone of the run whose cortex
-    # showed it, or compact bone's least contrast (None: its own).
+    # The blurred-slab model's full cortical contrast (HU): the bone's own, the one used, and
+    # the bone of the run it came from when that was another one's (None: its own).
     own_contrast_hu: Optional[float] = None
     contrast_hu: Optional[float] = None
     contrast_from: Optional[str] = None

@@ -61,7 +61,7 @@ def test_schema_is_complete_and_matches_the_dataclass():
             assert spec.minimum < spec.maximum
         allows_none = type(None) in typing.get_args(hints[name])
         assert allows_none == spec.allows_auto, f"{name}: Optional iff it has an auto meaning"
-    assert SCHEMA["edge_level"].default is None  # auto: the blurred two-layer model
+    assert SCHEMA["edge_level"].default is None  # auto: the blurred-slab model
     assert (SCHEMA["edge_level"].minimum, SCHEMA["edge_level"].maximum) == (0.3, 0.9)
     assert "damping" in SCHEMA["beta"].help and "constraint term" not in SCHEMA["beta"].help
 

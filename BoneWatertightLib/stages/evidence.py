@@ -9,7 +9,7 @@ boundary is the competition between two bones. Each vertex gets a class and a co
   above the valley outside it: weaker than the refinement needs to move a vertex, but still
   the CT's) and crosses its edge level within the CT's resolution of the vertex (EDGE_TOLERANCE_RESOLUTION x its coarsest spacing, at least one
   working voxel and EDGE_TOLERANCE_MM); confidence = the profile's contrast / the bone's full
-  cortical contrast (the refinement's two-layer model's reference), at most 1;
+  cortical contrast (the refinement's blurred-slab reference), at most 1;
 - ``thin plate`` (1): no edge, but the vertex lies on the face of a thin plate's slab
   (:mod:`.plates`); confidence = the plate ridge's contrast / the full contrast;
 - ``joint`` (2): no edge, within ``free_mm`` of another bone's voxels: the boundary there is
@@ -70,7 +70,7 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
         Soft-tissue level and the least edge contrast (HU): an edge peaks at least
         ``soft + min_contrast`` and ``min_contrast`` above its outside valley.
     edge_level : float or None
-        The refinement's edge level (None: the blurred two-layer model).
+        The refinement's edge level (None: the blurred-slab model).
     plates : stages.plates.Plates, optional
     others_distance : (z, y, x) float array, optional
         Distance (mm) to other bones' voxels on a box whose voxel (0, 0, 0) is at

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy import ndimage
 
 from ..mesh.operators import (laplacian, ring_mean, safe_update, sample_field, solve_spd,
                               vertex_normals)
@@ -46,33 +45,21 @@ REANCHOR_ROUNDS = 2
 REANCHOR_RISE_HU = 0.5 * MIN_CONTRAST_HU
 # Value of profile samples outside the grid (air).
 OUTSIDE_HU = -1000.0
-# Automatic edge level (edge_level None): the blurred two-layer model. A cortex of thickness w
-# (contrast 1 above the soft tissue outside) over an interior of contrast t (marrow, cancellous
-# bone), blurred by a Gaussian of width s, has the profile p(x) = Phi(-x/s) - (1 - t)
-# Phi(-(x + w)/s) (x outward, the border at 0): its peak q and its value at the border p(0)
-# depend on w/s and t only, so from the peak (as a fraction q of the full cortical contrast)
-# and the interior the model gives where the border lies, r = p(0)/q of the peak: 1/2 for a
-# step (thick cortex, or an interior as bright as the peak), up to ~0.95 for cortex much
-# thinner than the blur, whose half maximum lies outside the bone. The full contrast is the
-# SLAB_REFERENCE_PERCENTILE of the bone's own profile contrasts (its thick cortex: the 90th
-# percentile is the densest spots of a cortex whose density varies by +-15 %, and the model
-# then puts thin-cortex borders inward), or more (full_contrast). The interior is read as the profile's lowest value within SLAB_INNER_MM
-# inside the peak: still on the blurred cortex' flank when the blur is wide, so it overstates t
-# and the level errs toward the half maximum (outward), never inward of the model.
-SLAB_REFERENCE_PERCENTILE = 75.0
-# The least full contrast (HU above the soft tissue) of compact bone: cortical bone is
-# 1000-2000 HU on clinical CT at 80-140 kV, soft tissue 20-60 HU. A CT whose blur is wider
-# than every cortex it shows (3 mm voxels; a bone thin everywhere) measures less than this.
-CORTEX_CONTRAST_MIN_HU = 1000.0
-# Levels above 0.8 of the peak lie on the profile's flat top, where a small error of the level
-# (of the full contrast, of the interior read on a noisy profile) moves the crossing far:
-# measured on the anatomical phantoms at 3 mm, a cap of 0.9 put the vertebrae 0.2-0.3 mm inside
-# their truth, 0.8 within 0.06 mm; a noise-free cortex 0.6 mm over fat (blur 0.8 mm) stays
-# 0.23 mm outside at 0.8 (0.07 mm at 0.9).
-SLAB_LEVEL_RANGE = (0.5, 0.8)
+# Automatic edge level (edge_level None): the blurred-slab model. A cortex of thickness w blurred
+# by a Gaussian of width s peaks at q = 2 Phi(w / 2s) - 1 of the full contrast and crosses its
+# true outer border at r(q) = (Phi(w / s) - 1/2) / q of its own peak: r = 1/2 for thick cortex
+# (the half maximum), up to ~0.9 for cortex much thinner than the blur, whose half maximum lies
+# outside the bone. The full contrast is the SLAB_REFERENCE_PERCENTILE of the bone's own
+# profile contrasts (its thickest cortex); q is bounded below by SLAB_MIN_RATIO.
+SLAB_REFERENCE_PERCENTILE = 90.0
+SLAB_MIN_RATIO = 0.3
+SLAB_LEVEL_RANGE = (0.5, 0.9)
+# The model holds for a cortex with low-density marrow behind it (the profile falls again
+# inside the peak). Behind a thin cortex filled with cancellous bone (a vertebral body at 3 mm)
+# the profile is a step up to the interior, whose edge is the half maximum: the correction is
+# scaled by how far the profile falls within SLAB_INNER_MM inside the peak, as a fraction of the
+# peak - valley contrast.
 SLAB_INNER_MM = 2.0
-# The model's table: r on a grid of q (peak / full contrast) and t (interior / full contrast).
-SLAB_TABLE_STEPS = (101, 51)
 # A vertex whose shift differs from its 1-ring's mean by more than
 # max(OUTLIER_MM, OUTLIER_VOXELS * spacing) gets no target.
 OUTLIER_MM = 0.4
@@ -80,48 +67,16 @@ OUTLIER_VOXELS = 0.8
 
 
 def slab_edge_level(ratio, fall=1.0):
-    """The two-layer model's edge level (see the module constants) of a profile whose contrast
-    is ``ratio`` (array) of the full contrast and which falls by ``fall`` (array, a fraction of
-    its contrast) inside its peak, i.e. whose interior is ``ratio * (1 - fall)``: 0.5 for a
-    step (fall 0) or thick cortex (ratio 1), the slab's level for a cortex with nothing behind
-    it (fall 1), the model's level in between; within SLAB_LEVEL_RANGE."""
-    q = np.asarray(ratio, dtype=np.float64)
-    interior = q * (1.0 - np.clip(np.asarray(fall, dtype=np.float64), 0.0, 1.0))
-    table = _slab_table()
-    nq, nt = SLAB_TABLE_STEPS
-    iq = np.clip(np.nan_to_num(q, nan=1.0), 0.0, 1.0) * (nq - 1)
-    it = np.clip(np.nan_to_num(interior, nan=1.0), 0.0, 1.0) * (nt - 1)
-    out = ndimage.map_coordinates(table, np.stack(np.broadcast_arrays(it, iq)).reshape(2, -1),
-                                  order=1, mode="nearest").reshape(np.broadcast(it, iq).shape)
-    return np.clip(out, *SLAB_LEVEL_RANGE)
+    """The blurred-slab model's edge level (see the module constants) for a profile whose
+    contrast is ``ratio`` (array) of the full contrast and which falls by ``fall`` (array, a
+    fraction of its contrast) inside its peak: 0.5 for a step (fall 0), the model's level for
+    a slab with nothing behind it (fall 1)."""
+    from scipy.special import ndtr, ndtri
 
-
-_SLAB_TABLE = None
-
-
-def _slab_table() -> np.ndarray:
-    """r (see the module constants) on SLAB_TABLE_STEPS (t rows, q columns), t and q from 0 to
-    1: made once from the model's profiles (x and w in units of the blur s); 0.5 where q <= t
-    (the interior is the peak: a step) and at q = 1 (thick cortex)."""
-    global _SLAB_TABLE
-    if _SLAB_TABLE is None:
-        from scipy.special import ndtr
-
-        nq, nt = SLAB_TABLE_STEPS
-        qs = np.linspace(0.0, 1.0, nq)
-        x = np.linspace(-12.0, 12.0, 2401)
-        w = np.geomspace(1e-3, 12.0, 400)[:, None]
-        outer = ndtr(-x)[None, :]
-        behind = ndtr(-(x[None, :] + w))                   # (w, x): the interior's edge
-        at_border = 0.5 - ndtr(-w[:, 0])                   # p(0) of the cortex alone
-        table = np.full((nt, nq), 0.5)
-        for i, t in enumerate(np.linspace(0.0, 1.0, nt)):
-            peak = (outer - (1.0 - t) * behind).max(axis=1)   # rises with w from t to 1
-            r = (at_border + t * ndtr(-w[:, 0])) / peak
-            sel = (qs > t) & (qs < 1.0)
-            table[i, sel] = np.interp(qs[sel], peak, r)
-        _SLAB_TABLE = table
-    return _SLAB_TABLE
+    q = np.clip(np.asarray(ratio, dtype=np.float64), SLAB_MIN_RATIO, 1.0 - 1e-9)
+    a = 2.0 * ndtri(0.5 * (1.0 + q))  # w / s
+    full = np.clip((ndtr(a) - 0.5) / q, *SLAB_LEVEL_RANGE)
+    return 0.5 + np.clip(fall, 0.0, 1.0) * (full - 0.5)
 
 
 def sample_profiles(vertices, faces, ct_smooth, spacing):
@@ -156,7 +111,7 @@ def _valley_and_inner(t, prof, i_peak, peak):
 
 def contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast=MIN_CONTRAST_HU,
                        profiles=None, peak_max=np.inf):
-    """The bone's full cortical contrast (HU) for the blurred two-layer model: the
+    """The bone's full cortical contrast (HU) for the blurred-slab model: the
     SLAB_REFERENCE_PERCENTILE of peak - valley over the vertices whose profile has an edge
     (and peaks at most ``peak_max``: metal is no cortex). ``profiles``:
     :func:`sample_profiles` of these vertices, when already sampled."""
@@ -169,14 +124,13 @@ def contrast_reference(vertices, faces, ct_smooth, spacing, ht, min_contrast=MIN
 
 
 def full_contrast(own, shared):
-    """The full cortical contrast a bone's edge level is measured against: the largest of its
-    own :func:`contrast_reference`, the run's shared one and CORTEX_CONTRAST_MIN_HU (cortical
-    bone has about one density: a bone whose cortex is thin everywhere, a rib or a thin shell,
-    never shows the full contrast itself, nor does any bone on a CT whose blur is wider than
-    its cortex, and its half maximum lies outside it). NaN when no profile has an edge (neither
-    is known)."""
+    """The full cortical contrast a bone's edge level is measured against: its own
+    :func:`contrast_reference`, or the run's shared one when that is larger (cortical bone has
+    about one density: a bone whose cortex is thin everywhere, a rib or a thin shell, never
+    shows the full contrast itself, and its half maximum lies outside it). NaN when neither
+    is known."""
     vals = [v for v in (own, shared) if v is not None and np.isfinite(v)]
-    return float(max(vals + [CORTEX_CONTRAST_MIN_HU])) if vals else np.nan
+    return float(max(vals)) if vals else np.nan
 
 
 def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
@@ -203,7 +157,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         HT in HU: a profile whose peak is below it gives no edge.
     edge_level : float or None
         Where between the outside valley (0) and the bone peak (1) the edge sits; None: per
-        vertex by the blurred two-layer model (:func:`slab_edge_level`), 0.5 at thick cortex.
+        vertex by the blurred-slab model (:func:`slab_edge_level`), 0.5 at thick cortex.
     max_shift, min_contrast, smoothness, damping, passes
         See the module constants (smoothness and damping are the refinement's own Laplacian and
         damping weights, not the deformation's alpha and beta).
