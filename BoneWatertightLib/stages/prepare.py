@@ -42,8 +42,6 @@ AUTO_SPACING_RANGE_MM = (0.5, 1.0)
 # 0.5 / 0.75 / 1.0 mm (0.2 / 0.3 / 0.4 of the slice) -> p95 1.52 / 1.47 / 4.21 mm.
 AUTO_CT_FRACTION = 0.25
 AUTO_GRID_VOXELS = 8_000_000
-# Value of resampled voxels outside the CT (air).
-OUTSIDE_HU = -1000.0
 
 
 @dataclass
@@ -300,6 +298,67 @@ def check_finite_ct(ct: sitk.Image) -> None:
             "value in HU (e.g. -1000 for air) where the volume was made, or crop them away.")
 
 
+def _cubic_bspline_weights(t: np.ndarray) -> np.ndarray:
+    """(k, 4) weights of the cubic B-spline coefficients at floor(u) - 1 ... floor(u) + 2 for a
+    position u with fractional part ``t`` ((k,) in [0, 1))."""
+    t2 = t * t
+    t3 = t2 * t
+    return np.stack([(1.0 - t) ** 3, 3.0 * t3 - 6.0 * t2 + 4.0,
+                     -3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0, t3], axis=1) / 6.0
+
+
+def _mirror_index(i: np.ndarray, n: int) -> np.ndarray:
+    """Indices reflected about the first and last sample (d c b | a b c d | c b a), the
+    boundary of ITK's and scipy's ("mirror") B-spline coefficients."""
+    if n == 1:
+        return np.zeros_like(i)
+    period = 2 * n - 2
+    i = np.abs(i) % period
+    return np.where(i >= n, period - i, i)
+
+
+def bspline_resample(array: np.ndarray, spacing_zyx, d: float, shape_zyx) -> np.ndarray:
+    """Cubic B-spline interpolation of a volume onto a grid of step ``d`` with the same first
+    voxel and axes (what ``sitk.Resample`` with ``sitkBSpline`` does on that grid).
+
+    Parameters
+    ----------
+    array : (z, y, x) array
+        Samples of spacing ``spacing_zyx`` (mm).
+    d : float
+        Output spacing (mm) on every axis.
+    shape_zyx : tuple of 3 int
+        Output shape; voxel i of an axis lies at i * d mm, inside the input
+        (i * d <= (n - 1) * spacing).
+
+    Returns
+    -------
+    (z, y, x) float32 array of ``shape_zyx``.
+    """
+    from scipy import ndimage, sparse
+
+    out = np.asarray(array, dtype=np.float32)
+    for axis in range(3):
+        out = ndimage.spline_filter1d(out, order=3, axis=axis, mode="mirror", output=np.float32)
+    # Each axis is a sparse (m, n) product with 4 weights per row; the axes that grow least
+    # first keep the intermediate volumes small.
+    growth = [shape_zyx[a] / max(array.shape[a], 1) for a in range(3)]
+    for axis in sorted(range(3), key=lambda a: growth[a]):
+        n = array.shape[axis]
+        u = np.arange(shape_zyx[axis]) * (d / float(spacing_zyx[axis]))
+        f = np.floor(u).astype(np.int64)
+        w = _cubic_bspline_weights(u - f)
+        cols = np.concatenate([_mirror_index(f - 1 + k, n) for k in range(4)])
+        rows = np.tile(np.arange(len(u)), 4)
+        mat = sparse.csr_matrix((w.T.ravel().astype(np.float32), (rows, cols)),
+                                shape=(len(u), n))
+        moved = np.moveaxis(out, axis, 0)
+        rest = moved.shape[1:]
+        res = mat @ moved.reshape(n, -1)
+        out = np.moveaxis(res.reshape((len(u),) + rest), 0, axis)
+    return np.ascontiguousarray(out, dtype=np.float32)
+
+
 def prepare_labels(ct: sitk.Image, labels: sitk.Image, targets, *, spacing: float | None = None,
                    margin: float = 5.0, band_mm: float = 3.0, max_memory_gb: float = 4.0,
                    at_border: str = "cap", progress=None) -> PreparedLabels:
@@ -413,8 +472,11 @@ def prepare_labels(ct: sitk.Image, labels: sitk.Image, targets, *, spacing: floa
     ref.SetDirection(direction.ravel().tolist())
     if progress:
         progress(0.3, "B-spline resampling")
-    ct_res = sitk.GetArrayFromImage(sitk.Resample(ct_crop, ref, sitk.Transform(), sitk.sitkBSpline,
-                                                  OUTSIDE_HU, sitk.sitkFloat32))
+    # The working grid shares the CT's direction and first voxel, so the cubic B-spline
+    # interpolation is a tensor product: axis by axis (the same values as sitk.Resample with
+    # sitkBSpline to 3e-7 of the HU range, measured 30x faster).
+    ct_res = bspline_resample(sitk.GetArrayViewFromImage(ct_crop), ct_crop.GetSpacing()[::-1], d,
+                              tuple(reversed(new_size)))
     if progress:
         progress(0.8, "labels onto the working grid")
     lab_res = sitk.GetArrayFromImage(sitk.Resample(lab_img, ref, sitk.Transform(),
