@@ -781,6 +781,12 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
                            "detached) was joined to M0 "
                            f"({fusion.info['joined_bone_mm3']:.0f} mm^3)",
                            int(fusion.info["joined_pieces"]), "pieces")
+    if fusion.info.get("narrow_plugs"):
+        bone.fallbacks.add("poisson", "tunnels narrower than the CT resolves (closed by a ball of "
+                           f"{fusion.info['narrow_radius_mm']:.2f} mm at most), which the "
+                           "segment does not have, were closed "
+                           f"({fusion.info['narrow_fill_mm3']:.0f} mm^3; evidence: label only)",
+                           int(fusion.info["narrow_plugs"]), "tunnels")
     bone.fusion = fusion
     bone.m0 = Surface(m0.vertices + origin, m0.faces)
     bone.raw_vertices = raw.n_vertices

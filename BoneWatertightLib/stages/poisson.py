@@ -42,6 +42,8 @@ SINC_PASS_BAND = 0.1
 # contours per surface; plugs of at least FILL_MIN_VOXELS grid voxels.
 FILL_MAX_TRIALS = 8
 FILL_MIN_VOXELS = 8
+# ... and at most NARROW_MAX_TRIALS contours for the tunnels narrower than the CT resolves.
+NARROW_MAX_TRIALS = 16
 # Fewest triangles of a remeshed M0 (a tetrahedron); fewer: the surface was lost.
 MIN_REMESH_FACES = 4
 
@@ -478,6 +480,68 @@ def _plugs(field_zyx: np.ndarray, label: np.ndarray, h: float, reach_mm: float):
     return pieces, size
 
 
+def euler_number(mask: np.ndarray, connectivity: int = 26) -> int:
+    """Euler characteristic of a (z, y, x) bool volume: for one solid without cavities,
+    1 - genus. ``connectivity`` 26: the voxels as closed unit cubes (vertices - edges + faces -
+    cubes of their union); 6: the voxels as points joined by an edge where they share a face,
+    by a square where four share an edge and by a cube where eight share a corner. A contour
+    at 0.5 of a smoothed occupancy joins voxels that touch at an edge or corner in some places
+    and not in others, so its tunnels lie between the two counts. The characteristic is
+    additive: the change that adding voxels makes is computed on a window around them (see
+    :func:`_narrow_tunnel_plugs`)."""
+    p = np.pad(np.asarray(mask, bool), 1)
+    hi, lo = slice(1, None), slice(None, -1)
+
+    def shifted(pattern):
+        # every combination of high/low slices along the axes in ``pattern`` (all others whole)
+        out = []
+        for bits in range(2 ** len(pattern)):
+            sl = [slice(None)] * 3
+            for j, ax in enumerate(pattern):
+                sl[ax] = hi if bits >> j & 1 else lo
+            out.append(p[tuple(sl)])
+        return out
+
+    axes_pairs = [(1, 2), (0, 2), (0, 1)]
+    if connectivity == 6:
+        edges = sum(int(np.logical_and(*shifted((ax,))).sum()) for ax in range(3))
+        squares = sum(int(np.logical_and.reduce(shifted(pair)).sum()) for pair in axes_pairs)
+        cubes = int(np.logical_and.reduce(shifted((0, 1, 2))).sum())
+        return int(p.sum()) - edges + squares - cubes
+    faces = sum(int(np.logical_or(*shifted((ax,))).sum()) for ax in range(3))
+    edges = sum(int(np.logical_or.reduce(shifted(pair)).sum()) for pair in axes_pairs)
+    vertices = int(np.logical_or.reduce(shifted((0, 1, 2))).sum())
+    return vertices - edges + faces - int(p.sum())
+
+
+def _narrow_tunnel_plugs(field_zyx: np.ndarray, h: float, radius_mm: float) -> list:
+    """Pieces ((z, y, x) bool masks, smallest first) that a closing of the occupancy (field >=
+    0.5) by a ball of ``radius_mm`` adds and that each close a tunnel of the voxels (the Euler
+    characteristic, counted with 6- or with 26-connected voxels, rises when the piece is
+    added; computed on a window around it): plugs of tunnels about 2 x radius_mm across or
+    narrower. A closing's other pieces (it also fills every concave crease and notch that
+    narrow) leave the characteristic as it is."""
+    from ..mesh.distance import distance_inside, distance_outside
+
+    occ = field_zyx >= 0.5
+    grown = distance_outside(occ, h) <= radius_mm
+    add = (distance_inside(grown, h) > radius_mm) & ~occ
+    pieces, _ = ndimage.label(add, structure=np.ones((3, 3, 3), bool))
+    found = []
+    for i, box in enumerate(ndimage.find_objects(pieces), start=1):
+        if box is None:
+            continue
+        win = tuple(slice(max(0, b.start - 2), min(s, b.stop + 2)) for b, s in zip(box, occ.shape))
+        piece = pieces[win] == i
+        before = occ[win]
+        after = before | piece
+        if any(euler_number(after, c) > euler_number(before, c) for c in (6, 26)):
+            mask = np.zeros(occ.shape, bool)
+            mask[win] = piece
+            found.append((int(piece.sum()), i, mask))
+    return [m for _, _, m in sorted(found, key=lambda t: (t[0], t[1]))]
+
+
 def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fusion,
                   smooth_iterations: int) -> Surface:
     """Where the contour has more tunnels than the segment, close them with the segment.
@@ -492,12 +556,19 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
        whatever the segment's genus: a tunnel that thresholded bone plugs is no tunnel of the
        bone (a foramen or canal is dark on the CT), and a segment that is lace itself (an AI
        label of a thin blade) has tunnels of its own that say nothing of the bone's.
+    4. While the surface still has more tunnels than the segment: the pieces of closings of
+       the occupancy by growing balls (one grid step, 1.5, 2, ... up to half of ``close_mm[0]``,
+       the segment's coarseness, plus half a step) that each close a tunnel
+       (:func:`_narrow_tunnel_plugs`), smallest first, kept when they lower the genus: a
+       tunnel narrower than the CT resolves, where the segment at its own resolution has bone
+       (thin necks of a vertebra's arch on 3 mm slices, pierced where they are a voxel thin).
+       At most NARROW_MAX_TRIALS contours.
     At most FILL_MAX_TRIALS contours per source; what was done is recorded in
-    ``fusion.info``."""
+    ``fusion.info`` (``narrow_plugs``, ``narrow_fill_mm3``, ``narrow_radius_mm``)."""
     genus = surface_genus(out)
     fusion.info.update(genus_before=int(genus), segment_genus=int(fusion.genus),
                        label_fill_voxels=0, label_fill_mm3=0.0, plugs=0, fill_trials=0,
-                       bone_plugs=0, bone_fill_mm3=0.0)
+                       bone_plugs=0, bone_fill_mm3=0.0, narrow_plugs=0, narrow_fill_mm3=0.0)
     if genus <= fusion.genus and (fusion.bone is None or genus == 0):
         fusion.info["genus_after"] = int(genus)
         return out
@@ -557,12 +628,33 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         fusion.info["bone_plugs"] = plug_holes(
             _label_on(fusion, field_zyx.shape, lo, h, fusion.bone), trials + FILL_MAX_TRIALS, 0)
         fusion.info["bone_fill_mm3"] = float((filled & ~from_label).sum() * h ** 3)
+    from_ct = filled.copy()
+    if fusion.close_mm and genus > fusion.genus:
+        last_trial = trials + NARROW_MAX_TRIALS
+        # Balls of one grid step, 1.5, 2, ... up to half the segment's coarseness and half a
+        # step more (a lattice closing by r closes a hole about 2 r - h across).
+        top = 0.5 * (fusion.close_mm[0] + h)
+        for radius in h * np.arange(1.0, max(top / h, 1.0) + 1e-9, 0.5):
+            if genus <= fusion.genus or trials >= last_trial:
+                break
+            for plug in _narrow_tunnel_plugs(field_zyx, h, float(radius)):
+                if genus <= fusion.genus or trials >= last_trial:
+                    break
+                # set whole (a plug of a voxel or two smoothed would not reach the level)
+                if attempt(plug, soft=False):
+                    fusion.info["narrow_plugs"] += 1
+                    fusion.info["narrow_radius_mm"] = float(radius)
+    narrow = filled & ~from_ct
+    fusion.info["narrow_fill_mm3"] = float(narrow.sum() * h ** 3)
     if filled.any():
         out = contour(field_zyx, lo, h, 0.5, smooth_iterations)
     if from_label.any():
         fusion.info.update(label_fill_voxels=int(from_label.sum()),
                            label_fill_mm3=float(from_label.sum() * h ** 3))
-        fusion.fill_mask = (from_label, lo, h)
+    if from_label.any() or narrow.any():
+        # the surface there follows neither a CT edge nor thresholded bone but the segment
+        # (its fill, or its topology where a tunnel was closed): evidence "label only"
+        fusion.fill_mask = (from_label | narrow, lo, h)
     fusion.info["genus_after"] = int(genus)
     fusion.info["fill_trials"] = int(trials)
     return out
