@@ -2,6 +2,7 @@
 ownership at a joint, keeping surfaces apart, plausibility gates."""
 
 import numpy as np
+from scipy import ndimage
 import pytest
 
 from BoneWatertightLib.mesh.cap import cap_plane
@@ -960,3 +961,57 @@ def test_joint_surface_fit_picks_the_simpler_model_and_refuses_noise():
     # scattered points (no surface) and too few points: no fit
     assert jointfit.fit_joint_surface(rng.uniform(-10, 10, (3000, 3)), 0.6) is None
     assert jointfit.fit_joint_surface(pts[:20], 0.6) is None
+
+
+def test_euler_number_counts_tunnels_and_connectivity():
+    from BoneWatertightLib.stages.poisson import euler_number
+
+    block = np.zeros((9, 9, 9), bool)
+    block[2:7, 2:7, 2:7] = True
+    assert euler_number(block, 26) == 1 and euler_number(block, 6) == 1
+    ring = block.copy()
+    ring[3:6, 3:6, :] = False  # a square hole through it: a solid torus
+    assert euler_number(ring, 26) == 0 and euler_number(ring, 6) == 0
+    hollow = block.copy()
+    hollow[3:6, 3:6, 3:6] = False  # a closed cavity: 1 + 1
+    assert euler_number(hollow, 26) == 2 and euler_number(hollow, 6) == 2
+    corner = np.zeros((5, 5, 5), bool)
+    corner[1, 1, 1] = corner[2, 2, 2] = True  # one piece with 26-neighbours, two with 6
+    assert euler_number(corner, 26) == 1 and euler_number(corner, 6) == 2
+
+
+@pytest.mark.parametrize("hole, closed", [(2, True), (3, True), (4, True), (6, False), (7, False)])
+def test_tunnels_narrower_than_the_ct_resolves_are_closed(hole, closed):
+    """A plate pierced by a square hole that the segment (its genus 0) does not have and that no
+    label or bone plug reaches: closed when it is at most a CT voxel (coarseness 3 mm) and a
+    grid step (1 mm) across, with what was done in the fusion's info and the fill mask
+    (evidence 'label only'); a wider hole stays, and the genus says so."""
+    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, contour, surface_genus
+
+    occ = np.zeros((30, 34, 34), bool)
+    occ[10:16, 5:29, 5:29] = True
+    c = 17 - hole // 2
+    occ[:, c:c + hole, c:c + hole] = False
+    field = ndimage.gaussian_filter(occ.astype(np.float32), 0.8)
+    lo = np.zeros(3)
+    m0 = contour(field, lo, 1.0, 0.5, 0, relax=False)
+    assert surface_genus(m0) == 1
+    # the segment has the hole too (nothing to plug from it), but its own genus, counted at
+    # its coarseness, is 0
+    fusion = Fusion(label=occ.copy(), label_origin=np.zeros(3), label_spacing=1.0, genus=0,
+                    close_mm=(3.0,))
+    out = _fill_tunnels(m0, field, lo, 1.0, fusion, 0)
+    info = fusion.info
+    if closed:
+        assert surface_genus(out) == 0 and info["genus_after"] == 0
+        assert info["narrow_plugs"] == 1 and info["narrow_radius_mm"] <= 2.0
+        assert 0 < info["narrow_fill_mm3"] <= 3 * hole * hole * 6
+        assert info["label_fill_mm3"] == 0.0  # the segment filled nothing
+        mask, _, _ = fusion.fill_mask
+        assert mask.sum() * 1.0 == info["narrow_fill_mm3"]
+        # the plug lies in the hole
+        assert (mask & occ).sum() == 0
+        assert mask[:, c:c + hole, c:c + hole].sum() == mask.sum()
+    else:
+        assert surface_genus(out) == 1 and info["genus_after"] == 1
+        assert info["narrow_plugs"] == 0 and fusion.fill_mask is None

@@ -558,7 +558,8 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
        label of a thin blade) has tunnels of its own that say nothing of the bone's.
     4. While the surface still has more tunnels than the segment: the pieces of closings of
        the occupancy by growing balls (one grid step, 1.5, 2, ... up to half of ``close_mm[0]``,
-       the segment's coarseness, plus half a step) that each close a tunnel
+       the segment's coarseness, plus half a step: holes up to a voxel of the CT and a grid
+       step across) that each close a tunnel
        (:func:`_narrow_tunnel_plugs`), smallest first, kept when they lower the genus: a
        tunnel narrower than the CT resolves, where the segment at its own resolution has bone
        (thin necks of a vertebra's arch on 3 mm slices, pierced where they are a voxel thin).
@@ -631,8 +632,9 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
     from_ct = filled.copy()
     if fusion.close_mm and genus > fusion.genus:
         last_trial = trials + NARROW_MAX_TRIALS
-        # Balls of one grid step, 1.5, 2, ... up to half the segment's coarseness and half a
-        # step more (a lattice closing by r closes a hole about 2 r - h across).
+        # Balls of one grid step, 1.5, 2, ... up to r = (coarseness + h) / 2: a closing by r
+        # closes holes up to 2 r across, i.e. one voxel of the segment's coarseness (the CT's
+        # slice) and one step of the grid's own rounding; wider holes stay.
         top = 0.5 * (fusion.close_mm[0] + h)
         for radius in h * np.arange(1.0, max(top / h, 1.0) + 1e-9, 0.5):
             if genus <= fusion.genus or trials >= last_trial:
