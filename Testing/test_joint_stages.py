@@ -326,6 +326,39 @@ def test_foreign_pieces_are_the_merged_ones_connected_to_a_piece_not_merged():
     assert ownership._foreign_pieces(faces, set(), {7}) == set()
 
 
+def test_enclosed_pieces_join_the_bone_whose_merged_pieces_surround_them():
+    """Unlabelled crumbs that touch the bone over too little to be merged themselves but lie
+    between pieces merged into it, without valleys, within reach of its label, join the bone
+    (a cluster of them at once); a cluster that touches another bone, unlabelled bone left
+    out, shows valleys on its contacts, or reaches beyond the reach does not - and nor does
+    anything connected to it."""
+    shape = (10, 10, 40)
+    labels = np.zeros(shape, np.uint16)
+    labels[:, :, :10] = 1
+    labels[:, :, 30:] = 2
+    ws = np.zeros(shape, np.int32)
+    # bones 1 and 2; unlabelled pieces from 4 up (4 merged into bone 1)
+    for p, (a, b) in {4: (10, 12), 5: (12, 13), 6: (13, 14), 7: (14, 15), 8: (15, 16),
+                      9: (24, 26), 10: (16, 17), 11: (17, 18)}.items():
+        ws[:, :, a:b] = p
+    boxes = ndimage.find_objects(ws)
+    merged = [(4, 1, 0.0, 25.0)]
+    faces = {(1, 4): (100, 0),
+             (1, 5): (1, 0), (4, 5): (100, 1), (5, 6): (100, 2), (4, 6): (50, 1),  # 5 + 6
+             (4, 7): (50, 20),                    # 7: valleys on 40 % of its contact
+             (4, 8): (50, 0), (2, 8): (50, 0),    # 8: touches bone 2 as well
+             (1, 9): (1, 0), (4, 9): (30, 0),     # 9: beyond the reach of label 1
+             (4, 10): (40, 0), (10, 11): (20, 0), (11, 12): (5, 0)}  # 10-11 meet piece 12
+    out = ownership._enclosed_pieces(faces, merged, range(4, 13), 2, ws, labels, 1.0,
+                                     reach_mm=8.0, boxes=boxes)
+    assert [(p, a) for p, a, _, _ in out] == [(5, 1), (6, 1)]
+    frac = {p: f for p, _, f, _ in out}
+    assert frac[5] == frac[6] == pytest.approx(2 / 151)
+    # with nothing merged there is nothing to be enclosed in
+    assert ownership._enclosed_pieces(faces, [], range(4, 13), 2, ws, labels, 1.0,
+                                      reach_mm=8.0, boxes=boxes) == []
+
+
 # ---------------------------------------------------------------------------------- contacts
 
 def _grid_sphere(radius, centre):

@@ -698,9 +698,11 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         progress(0.8, "contacts between bones")
     faces = _interfaces(ws, fg, ct, spacing, quantum, radius)
     boxes = ndimage.find_objects(ws)
+    reach_mm = band_mm + MERGE_REACH_COARSENESS * coarseness + MERGE_REACH_MM
     merged = _merged_pieces(faces, ws, labels, n, range(other, other + n_pieces), spacing,
-                            reach_mm=band_mm + MERGE_REACH_COARSENESS * coarseness
-                            + MERGE_REACH_MM, boxes=boxes)
+                            reach_mm=reach_mm, boxes=boxes)
+    merged += _enclosed_pieces(faces, merged, range(other, other + n_pieces), n, ws, labels,
+                               spacing, reach_mm=reach_mm, boxes=boxes)
     ws[joint_space] = 0
     owner = _owners(ws, seg.regions, markers, labels, merged, boxes)
     merged_ids = {p for p, _, _, _ in merged}
@@ -923,6 +925,87 @@ def _foreign_pieces(faces: dict, merged: set, kept: set) -> set:
     return reached & merged
 
 
+def _within_reach(piece: int, a: int, ws, labels, spacing: float, reach_mm: float,
+                  boxes: list) -> bool:
+    """Does every voxel of unlabelled piece ``piece`` lie within ``reach_mm`` of label ``a``?"""
+    pad = int(np.ceil(reach_mm / spacing)) + 1
+    # The label within reach of the piece lies in its box grown by the reach: the distance
+    # measured there is exact up to the reach, and beyond it only larger.
+    box = tuple(slice(max(0, b.start - pad), min(size, b.stop + pad))
+                for b, size in zip(boxes[piece - 1], ws.shape))
+    lab_a = labels[box] == a
+    if not lab_a.any():
+        return False
+    return bool((distance_outside(lab_a) * spacing)[ws[box] == piece].max() <= reach_mm)
+
+
+def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spacing: float,
+                     reach_mm: float, boxes: list) -> list:
+    """Unlabelled pieces that the first merge (:func:`_merged_pieces`) left out but that lie
+    enclosed in one bone's merged bone - a crumb of the bone's own cortex between its merged
+    pieces that touches the bone itself over too little (the trochanter of a femur whose rough
+    label stops short of it). Left unmerged, such a crumb made every merged piece around it
+    count as a neighbour's fragment (the plausibility gate refused the bone) and kept the
+    surface out of itself (a dent).
+
+    The candidates are grouped into clusters (touching each other); a cluster joins bone a when
+    every contact it has outside itself is with a or with pieces merged into a, a valley shows
+    on less than OWN_MAX_VALLEY_FRACTION of those contacts (and on less than
+    MERGE_MAX_VALLEY_FRACTION of its direct contact with a), and each of its pieces lies within
+    ``reach_mm`` of a's label. A cluster that fails is no candidate any more, so the clusters
+    touching it fail in turn: nothing joins that is connected to unlabelled bone left out (a
+    neighbour the segment does not label). [(piece, bone, valley fraction, contact mm^2)] as
+    :func:`_merged_pieces`."""
+    area = spacing ** 2
+    into = {p: a for p, a, _, _ in merged}
+    cand = {p for p in pieces if p not in into and p <= len(boxes) and boxes[p - 1] is not None}
+    touching: dict = {}
+    for (a, b), (tot, vis) in faces.items():
+        touching.setdefault(a, []).append((b, tot, vis))
+        touching.setdefault(b, []).append((a, tot, vis))
+    reach_ok: dict = {}
+    verdict: dict = {}
+    changed = True
+    while changed and cand:
+        changed = False
+        seen: set = set()
+        for start in sorted(cand):
+            if start in seen:
+                continue
+            cluster, stack = {start}, [start]
+            while stack:
+                for q, _, _ in touching.get(stack.pop(), ()):
+                    if q in cand and q not in cluster:
+                        cluster.add(q)
+                        stack.append(q)
+            seen |= cluster
+            outside = [(q, t, v) for p in cluster for q, t, v in touching.get(p, ()) if q not in cluster]
+            bones = {into.get(q, q) for q, _, _ in outside}
+            tot = sum(t for _, t, _ in outside)
+            vis = sum(v for _, _, v in outside)
+            ok = (len(bones) == 1 and min(bones) <= n and tot > 0
+                  and all(q <= n or q in into for q, _, _ in outside)
+                  and vis / tot < OWN_MAX_VALLEY_FRACTION
+                  and all(v < MERGE_MAX_VALLEY_FRACTION * t for q, t, v in outside if q <= n))
+            if ok:
+                (bone,) = bones
+                for p in sorted(cluster):
+                    if (p, bone) not in reach_ok:
+                        reach_ok[(p, bone)] = _within_reach(p, bone, ws, labels, spacing,
+                                                            reach_mm, boxes)
+                    ok = ok and reach_ok[(p, bone)]
+            if ok:
+                verdict[frozenset(cluster)] = (bone, vis / tot, tot * area)
+            else:
+                cand -= cluster
+                changed = True
+        verdict = {c: v for c, v in verdict.items() if c <= cand}
+    out = []
+    for cluster, (bone, frac, contact) in verdict.items():
+        out += [(p, bone, frac, contact) for p in sorted(cluster)]
+    return sorted(out)
+
+
 def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
                    reach_mm: float, boxes: list) -> list:
     """Unlabelled pieces meeting a bone without a valley: the bone's own, missed by the
@@ -931,7 +1014,6 @@ def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
     [(piece, bone, valley fraction, contact mm^2)]"""
     area = spacing ** 2
     merged = []
-    pad = int(np.ceil(reach_mm / spacing)) + 1
     for piece in pieces:
         best = None
         for (a, b), (tot, vis) in faces.items():
@@ -944,15 +1026,7 @@ def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
         a, tot, vis = best
         if vis / tot >= MERGE_MAX_VALLEY_FRACTION or tot * area < MERGE_MIN_AREA_MM2:
             continue
-        # The label within reach of the piece lies in its box grown by the reach: the
-        # distance measured there is exact up to the reach, and beyond it only larger.
-        box = tuple(slice(max(0, b.start - pad), min(size, b.stop + pad))
-                    for b, size in zip(boxes[piece - 1], ws.shape))
-        lab_a = labels[box] == a
-        if not lab_a.any():
-            continue
-        far = (distance_outside(lab_a) * spacing)[ws[box] == piece].max()
-        if far <= reach_mm:
+        if _within_reach(piece, a, ws, labels, spacing, reach_mm, boxes):
             merged.append((piece, a, vis / tot, tot * area))
     return merged
 
