@@ -568,6 +568,16 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         sel = idx[ok]
         sv = s[ok]
         side[tuple(sel.T)] = np.where(sv < -tol, 1, np.where(sv > tol, 2, 0))
+        # Bone of a basin that lies clearly on its own side of the fit belongs to it even where
+        # its label stops short (a rough femur label short of the head at the cup's rim): its
+        # region grows over it, or no bone would own it and the neighbour's closing would take
+        # it (a tongue of the cup into the head).
+        for mine, code, key in ((a, 1, "kept_a"), (b, 2, "kept_b")):
+            if mine > n:
+                continue
+            stay = (side == code) & (w == mine) & f
+            if stay.any():
+                _grow_region(regions, mine, stay, sl)
         for mine, other, key in ((a, b, "to_a"), (b, a, "to_b")):
             flip = (side == (1 if mine == a else 2)) & (w == other) & f
             if not flip.any():
