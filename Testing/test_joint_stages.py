@@ -968,6 +968,32 @@ def test_the_hidden_pole_is_carried_against_an_unlabelled_cup(monkeypatch):
     assert (run().owner[pole] == 1).mean() < 0.2
 
 
+def test_the_fit_grows_a_region_over_its_basin_on_its_side():
+    """A ball's region stops short of its pole (its label did), while the flooding gave the
+    ball its whole cortex: the fitted joint sphere says the pole's cortex lies on the ball's
+    side, so the ball's region grows over it (else no bone would own it and the cup's closing
+    could take it); no voxel of the cup joins the ball's region."""
+    ct, _, r, dz = _ball_in_cup(hide_deg=35.0, short=0.0)
+    ws = np.zeros(ct.shape, np.int32)
+    ws[r <= 13] = 1
+    cup = (r > 13) & (r <= 17) & (dz / np.maximum(r, 1e-9) > -0.2)
+    ws[cup] = 2
+    cores = np.zeros(ct.shape, np.uint16)
+    cores[r <= 8] = 1
+    cores[(r >= 15) & (r <= 16) & (dz / np.maximum(r, 1e-9) > 0)] = 2
+    whole = tuple(slice(0, s) for s in ct.shape)
+    regions = {1: (whole, (r <= 13) & (dz < 8)), 2: (whole, (r > 12) & (r <= 18))}
+    (fit,) = ownership.carry_joint_fits(ws, ct > 200, ct, cores, regions, 2, 1.0, quantum=90.0,
+                                        radius_mm=2.0, reach_mm=4.0, margin_mm=2.0)
+    assert fit["used"] and fit["model"] == "sphere" and fit["to_a"] == fit["to_b"] == 0
+    pole = (r > 10) & (r <= 12) & (dz >= 8)
+    sl, reg = regions[1]
+    grown = np.zeros(ct.shape, bool)
+    grown[sl] = reg
+    assert grown[pole].mean() > 0.95  # 0 before: nothing moved, so nothing grew
+    assert not (grown & cup).any()
+
+
 def test_joint_surface_fit_picks_the_simpler_model_and_refuses_noise():
     rng = np.random.default_rng(4)
     # a band of a sphere (r 13 mm) between 40 and 80 degrees from its pole, 0.3 mm scatter
