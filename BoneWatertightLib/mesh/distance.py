@@ -29,6 +29,17 @@ def _backend():
     return _EDT
 
 
+def _edt(labels: np.ndarray, sampling, backend) -> np.ndarray:
+    """``edt.edt`` of a (z, y, x) label volume at ``sampling`` (a voxel size or a triple), on
+    up to 4 threads; voxels beyond the array's edge do not count."""
+    if np.isscalar(sampling):
+        anisotropy = (float(sampling),) * labels.ndim
+    else:
+        anisotropy = tuple(float(s) for s in sampling)
+    threads = max(1, min(4, os.cpu_count() or 1))
+    return backend.edt(labels, anisotropy=anisotropy, black_border=False, parallel=threads)
+
+
 def distance_inside(mask: np.ndarray, sampling=1.0) -> np.ndarray:
     """For each True voxel of a (z, y, x) bool array, the distance to the nearest False voxel
     (0 on False voxels), as float32; ``sampling`` is a voxel size (or a (z, y, x) triple).
@@ -36,16 +47,12 @@ def distance_inside(mask: np.ndarray, sampling=1.0) -> np.ndarray:
     mask = np.ascontiguousarray(mask, dtype=bool)
     if not mask.any():
         return np.zeros(mask.shape, np.float32)
-    if np.isscalar(sampling):
-        anisotropy = (float(sampling),) * mask.ndim
-    else:
-        anisotropy = tuple(float(s) for s in sampling)
     backend = _backend()
     if backend:
-        threads = max(1, min(4, os.cpu_count() or 1))
-        return backend.edt(mask, anisotropy=anisotropy, black_border=False,
-                           parallel=threads).astype(np.float32, copy=False)
-    return ndimage.distance_transform_edt(mask, sampling=anisotropy).astype(np.float32)
+        return _edt(mask, sampling, backend).astype(np.float32, copy=False)
+    if not np.isscalar(sampling):
+        sampling = tuple(float(s) for s in sampling)
+    return ndimage.distance_transform_edt(mask, sampling=sampling).astype(np.float32)
 
 
 def distance_outside(mask: np.ndarray, sampling=1.0) -> np.ndarray:
@@ -57,19 +64,11 @@ def signed_distance(mask: np.ndarray, sampling=1.0) -> np.ndarray:
     """Signed distance to the boundary of ``mask``: positive outside, negative inside (as
     ``distance_outside(mask) - distance_inside(mask)``), float32."""
     mask = np.ascontiguousarray(mask, dtype=bool)
-    if mask.all() or not mask.any():
-        return distance_outside(mask, sampling) - distance_inside(mask, sampling)
     backend = _backend()
-    if not backend:
+    if not backend or mask.all() or not mask.any():
         return distance_outside(mask, sampling) - distance_inside(mask, sampling)
-    if np.isscalar(sampling):
-        anisotropy = (float(sampling),) * mask.ndim
-    else:
-        anisotropy = tuple(float(s) for s in sampling)
     # One transform of a two-label volume instead of two binary ones: edt measures each voxel
     # to the nearest voxel of the other label, which is the distance inside on the mask and
     # outside off it (identical values, measured 1.6-1.8x faster).
-    two = np.where(mask, np.uint8(1), np.uint8(2))
-    threads = max(1, min(4, os.cpu_count() or 1))
-    d = backend.edt(two, anisotropy=anisotropy, black_border=False, parallel=threads)
+    d = _edt(np.where(mask, np.uint8(1), np.uint8(2)), sampling, backend)
     return np.where(mask, -d, d).astype(np.float32, copy=False)

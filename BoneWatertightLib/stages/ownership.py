@@ -572,7 +572,7 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         # its label stops short (a rough femur label short of the head at the cup's rim): its
         # region grows over it, or no bone would own it and the neighbour's closing would take
         # it (a tongue of the cup into the head).
-        for mine, code, key in ((a, 1, "kept_a"), (b, 2, "kept_b")):
+        for mine, code in ((a, 1), (b, 2)):
             if mine > n:
                 continue
             stay = (side == code) & (w == mine) & f

@@ -317,16 +317,20 @@ def carve_region(segment: np.ndarray, bone: np.ndarray, spacing: float, segment_
     return free
 
 
-def _close_with_label(field_zyx: np.ndarray, label: np.ndarray, h: float,
-                      radius_mm: float) -> np.ndarray:
-    """Voxels of ``label`` that a closing of the occupancy (field >= 0.5) by a ball of
-    ``radius_mm`` adds: holes the segment does not have, bridged where the segment is."""
+def _closing_adds(field_zyx: np.ndarray, h: float, radius_mm: float) -> np.ndarray:
+    """Voxels that a closing of the occupancy (field >= 0.5) by a ball of ``radius_mm`` adds."""
     from ..mesh.distance import distance_inside, distance_outside
 
     occ = field_zyx >= 0.5
     grown = distance_outside(occ, h) <= radius_mm
-    closed = distance_inside(grown, h) > radius_mm
-    return closed & label & ~occ
+    return (distance_inside(grown, h) > radius_mm) & ~occ
+
+
+def _close_with_label(field_zyx: np.ndarray, label: np.ndarray, h: float,
+                      radius_mm: float) -> np.ndarray:
+    """Voxels of ``label`` that a closing of the occupancy (field >= 0.5) by a ball of
+    ``radius_mm`` adds: holes the segment does not have, bridged where the segment is."""
+    return _closing_adds(field_zyx, h, radius_mm) & label
 
 
 def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_ITERATIONS,
@@ -521,12 +525,9 @@ def _narrow_tunnel_plugs(field_zyx: np.ndarray, h: float, radius_mm: float) -> l
     added; computed on a window around it): plugs of tunnels about 2 x radius_mm across or
     narrower. A closing's other pieces (it also fills every concave crease and notch that
     narrow) leave the characteristic as it is."""
-    from ..mesh.distance import distance_inside, distance_outside
-
     occ = field_zyx >= 0.5
-    grown = distance_outside(occ, h) <= radius_mm
-    add = (distance_inside(grown, h) > radius_mm) & ~occ
-    pieces, _ = ndimage.label(add, structure=np.ones((3, 3, 3), bool))
+    pieces, _ = ndimage.label(_closing_adds(field_zyx, h, radius_mm),
+                              structure=np.ones((3, 3, 3), bool))
     found = []
     for i, box in enumerate(ndimage.find_objects(pieces), start=1):
         if box is None:
