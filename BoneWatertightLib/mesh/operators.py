@@ -126,7 +126,7 @@ def sample_field(field_zyx: np.ndarray, points_grid_mm: np.ndarray, spacing: flo
 
 
 def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int = BACKOFF_ROUNDS,
-                intersections: bool = True):
+                intersections: bool = True, halvings: int = 0):
     """Local back-off: vertices of triangles that a step would flip (or, with ``intersections``,
     make intersect) keep their old position. ``old`` must be free of both.
 
@@ -139,6 +139,10 @@ def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int
         Back-off rounds before giving up.
     intersections : bool
         Also run the exact self-intersection test (slower).
+    halvings : int
+        The first ``halvings`` rounds move those vertices half-way back instead of all the way:
+        a sliver triangle that a step flips is often fine with part of the step, and a vertex
+        put all the way back while its neighbours moved stands out of the surface as a spike.
 
     Returns
     -------
@@ -159,7 +163,7 @@ def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int
     # not report is clean, and a pair can only start crossing when one of its faces moves
     # again (is put back): the next test needs just the faces of the vertices put back since.
     unseen = np.any(new != old, axis=1)
-    for r in range(rounds + BACKOFF_GROW_ROUNDS):
+    for r in range(halvings + rounds + BACKOFF_GROW_ROUNDS):
         bad = np.zeros(len(faces), bool)
         bad[sub] = np.einsum("ij,ij->i", fn_before, face_normals(new, faces[sub])) < 0.0
         if not bad.any():
@@ -173,12 +177,12 @@ def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int
         bad_faces = int(bad.sum())
         back = np.zeros(len(new), bool)
         back[faces[bad]] = True
-        if r >= rounds:
+        if r >= halvings + rounds:
             ring += 1
             for _ in range(ring):
                 back[faces[back[faces].any(axis=1)]] = True
         unseen |= back & np.any(new != old, axis=1)
-        new[back] = old[back]
+        new[back] = 0.5 * (old[back] + new[back]) if r < halvings else old[back]
     return new, False, bad_faces
 
 

@@ -64,6 +64,9 @@ SLAB_INNER_MM = 2.0
 # max(OUTLIER_MM, OUTLIER_VOXELS * spacing) gets no target.
 OUTLIER_MM = 0.4
 OUTLIER_VOXELS = 0.8
+# Back-off rounds that take a step half-way back before putting vertices all the way back
+# (:func:`..mesh.operators.safe_update`).
+BACKOFF_HALVINGS = 3
 
 
 def slab_edge_level(ratio, fall=1.0):
@@ -233,7 +236,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
     for r in range(VERIFY_ROUNDS):
         if progress:
             progress((passes + r) / (passes + VERIFY_ROUNDS), "edge refinement: verifying")
-        checked, ok, _ = safe_update(clean, v, faces)
+        checked, ok, _ = safe_update(clean, v, faces, halvings=BACKOFF_HALVINGS)
         if not ok:
             note("the unrefined surface is kept: the refined one failed the self-intersection "
                  "check" if r == 0 else "a re-refinement failed the self-intersection check: "
@@ -376,7 +379,12 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
     LtL, avg = ops
     # A vertex whose edge disagrees with its neighbours' (noise, a pore at the surface, a
     # grazing profile) gets no target: the Laplacian term carries it with its neighbours.
-    w[np.abs(shift - ring_mean(avg, shift, w)) > max(OUTLIER_MM, OUTLIER_VOXELS * spacing)] = 0.0
+    # Targets are compared where they lie, not by how far each vertex moves: a vertex that
+    # stands out of its ring (a spike the deformation or a back-off left) keeps a target that
+    # lies with its neighbours' targets. ``height``: how far it stands out along its normal.
+    height = np.einsum("ij,ij->i", vertices - avg @ vertices, n)
+    w[np.abs(shift + height - ring_mean(avg, shift, w))
+      > max(OUTLIER_MM, OUTLIER_VOXELS * spacing)] = 0.0
     targets = vertices + shift[:, None] * n
     if allowed is not None:
         # never toward another bone's side of a joint
@@ -384,6 +392,7 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
     A = (smoothness * LtL + sp.diags(w + damping)).tocsr()
     rhs = w[:, None] * targets + smoothness * (LtL @ vertices) + damping * vertices
     new = solve_spd(A, rhs, vertices, fallbacks, "refine")
-    new, safe, _ = safe_update(vertices, new, faces, intersections=False)
+    new, safe, _ = safe_update(vertices, new, faces, intersections=False,
+                               halvings=BACKOFF_HALVINGS)
     moved = np.einsum("ij,ij->i", new - vertices, n)
     return new, moved, ok, safe
