@@ -28,10 +28,10 @@ def _only(log, stage, text):
 
 def _failing_exact_check(real):
     """safe_update whose exact self-intersection check never passes (flips still checked)."""
-    def fake(old, new, faces, rounds=operators.BACKOFF_ROUNDS, intersections=True):
+    def fake(old, new, faces, rounds=operators.BACKOFF_ROUNDS, intersections=True, halvings=0):
         if intersections:
             return old.copy(), False, 7
-        return real(old, new, faces, rounds=rounds, intersections=False)
+        return real(old, new, faces, rounds=rounds, intersections=False, halvings=halvings)
     return fake
 
 

@@ -111,3 +111,46 @@ def test_a_bone_thin_everywhere_is_measured_against_the_runs_full_contrast():
     assert err["smaller"] == pytest.approx(err["own"], abs=1e-9)
     assert refine.full_contrast(np.nan, None) != refine.full_contrast(np.nan, None)  # NaN
     assert refine.full_contrast(500.0, np.nan) == 500.0
+
+
+def test_a_spike_of_the_surface_is_pulled_onto_the_edge_with_its_neighbours():
+    """A vertex that stands 1 mm out of a sphere lying on a solid ball's edge: its own edge
+    target is 1 mm inward, its neighbours' about 0, so its shift disagrees with theirs; but
+    its target lies with theirs, and the refinement must take the spike out (before, the
+    outlier test dropped its target and the Laplacian term kept the spike)."""
+    ct, d, shift = _half_thin_ball(thin=12.0)
+    s = sphere_mesh(12.0, 0.6)
+    v, f = s.vertices.copy(), s.faces
+    n = v / np.linalg.norm(v, axis=1, keepdims=True)
+    tip = int(np.argmax(v[:, 0]))
+    v[tip] += 1.0 * n[tip]
+    out, _, _, _ = refine.refine_to_edges(v + shift, f, ct, d, ht=200.0, edge_level=None)
+    err = np.linalg.norm(out - shift, axis=1) - 12.0
+    assert abs(err[tip]) < 0.3, err[tip]
+    assert np.percentile(np.abs(err), 99) < 0.15
+
+
+def test_the_back_off_keeps_the_part_of_a_step_that_flips_nothing():
+    """A vertex pushed past its neighbour flips triangles; half of that step does not. The
+    plain back-off puts it all the way back; with halvings it keeps a part of the step, and
+    no triangle is flipped either way."""
+    from BoneWatertightLib.mesh.operators import face_normals, safe_update
+
+    s = sphere_mesh(10.0, 1.0)
+    v, f = s.vertices, s.faces
+    k = 0
+    first = f[np.flatnonzero((f == k).any(axis=1))[0]]
+    j = int(first[first != k][0])  # a neighbour of k
+    new = v.copy()
+    new[k] = v[k] + 1.6 * (v[j] - v[k])
+    before = face_normals(v, f)
+    assert (np.einsum("ij,ij->i", before, face_normals(new, f)) < 0).any()
+    for halvings in (0, refine.BACKOFF_HALVINGS):
+        out, ok, _ = safe_update(v, new, f, intersections=False, halvings=halvings)
+        assert ok
+        assert (np.einsum("ij,ij->i", before, face_normals(out, f)) >= 0).all()
+        moved = np.linalg.norm(out[k] - v[k]) / np.linalg.norm(new[k] - v[k])
+        if halvings:
+            assert 0.1 < moved < 1.0, moved
+        else:
+            assert moved == 0.0
