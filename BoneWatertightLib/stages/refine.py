@@ -381,9 +381,12 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
     # grazing profile) gets no target: the Laplacian term carries it with its neighbours.
     # Targets are compared where they lie, not by how far each vertex moves: a vertex that
     # stands out of its ring (a spike the deformation or a back-off left) keeps a target that
-    # lies with its neighbours' targets. ``height``: how far it stands out along its normal.
+    # lies with its neighbours' targets. ``spike``: how much further it stands out along its
+    # normal than its neighbours do (a process tip whose whole ring is as curved is no spike;
+    # there the test stays that of the shifts).
     height = np.einsum("ij,ij->i", vertices - avg @ vertices, n)
-    w[np.abs(shift + height - ring_mean(avg, shift, w))
+    spike = height - avg @ height
+    w[np.abs(shift + spike - ring_mean(avg, shift, w))
       > max(OUTLIER_MM, OUTLIER_VOXELS * spacing)] = 0.0
     targets = vertices + shift[:, None] * n
     if allowed is not None:
