@@ -75,3 +75,19 @@ def test_signed_distance_of_an_empty_or_full_mask():
     full = np.ones((5, 6, 7), bool)
     assert np.array_equal(signed_distance(empty), distance_outside(empty) - distance_inside(empty))
     assert np.array_equal(signed_distance(full), distance_outside(full) - distance_inside(full))
+
+
+def test_fill_holes_is_scipys_on_hollow_shapes_with_holes_at_the_border():
+    from BoneWatertightLib.stages.threshold import fill_holes
+
+    rng = np.random.default_rng(5)
+    z, y, x = np.mgrid[:40, :36, :30]
+    r = np.sqrt((y - 18) ** 2 + (x - 15) ** 2)
+    shell = (r < 12) & (r > 8)                     # a tube: its bore opens at both ends
+    closed = shell.copy()
+    closed[10] |= r[0] < 12                         # plates close the bore: a cavity between
+    closed[30] |= r[0] < 12
+    noisy = closed ^ (rng.random(closed.shape) < 0.02)
+    for m in (shell, closed, noisy, np.zeros((4, 5, 6), bool), np.ones((4, 5, 6), bool)):
+        assert np.array_equal(fill_holes(m), ndimage.binary_fill_holes(m))
+    assert fill_holes(closed)[20, 18, 15] and not closed[20, 18, 15]

@@ -24,6 +24,7 @@ from scipy import ndimage
 from ..errors import DependencyError, ReconstructionError
 from ..mesh.operators import tangential_relax
 from ..mesh.surface import Surface, enclosed_volume, from_polydata, inside_mask
+from .threshold import fill_holes
 
 # Sigma (voxels) of the smoothed mask whose gradient gives the oriented normals.
 NORMAL_MASK_SIGMA_VOXELS = 1.5
@@ -366,7 +367,7 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         sizes = np.bincount(lab.ravel())
         sizes[0] = 0
         occ = lab == int(np.argmax(sizes))
-    occ = ndimage.binary_fill_holes(occ)
+    occ = fill_holes(occ)
     joined = occ
     if fusion is not None and fusion.solid is not None:
         joined = _join_missed_bone(occ, lo, h, fusion)

@@ -89,7 +89,7 @@ def segment_region(segment: np.ndarray, spacing: float, close_mm: float = REGION
     dilated = d_out <= close_mm
     d_in = distance_inside(dilated) * cs
     closed = (d_in > close_mm) | coarse
-    closed = ndimage.binary_fill_holes(closed)
+    closed = fill_holes(closed)
     d_closed = distance_outside(closed) * cs
     region = d_closed <= dilate_mm
     region = region[pad:-pad, pad:-pad, pad:-pad]
@@ -231,7 +231,23 @@ def solidify(mask: np.ndarray, spacing: float, radius_mm: float = SOLIDIFY_RADIU
     out = np.pad(mask, pad)
     out = ndimage.binary_closing(out, structure=struct, iterations=steps)
     out = out[pad:-pad, pad:-pad, pad:-pad] | mask
-    return ndimage.binary_fill_holes(out)
+    return fill_holes(out)
+
+
+def fill_holes(mask: np.ndarray) -> np.ndarray:
+    """``mask`` with every background component that does not touch the array's border filled
+    (the same as :func:`scipy.ndimage.binary_fill_holes`, 6-connected background; one
+    labelling instead of a dilation iterated to convergence, which is slow across a large
+    hollow bone). A new (z, y, x) bool array."""
+    background, n = ndimage.label(~mask)
+    if n == 0:
+        return np.ones(mask.shape, bool)
+    outer = np.zeros(n + 1, bool)
+    for axis in range(mask.ndim):
+        for end in (0, -1):
+            outer[np.take(background, end, axis=axis)] = True
+    outer[0] = False
+    return ~outer[background]
 
 
 def boundary_voxels(mask: np.ndarray) -> np.ndarray:
