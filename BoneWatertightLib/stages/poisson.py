@@ -370,7 +370,7 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
     occ = fill_holes(occ)
     joined = occ
     if fusion is not None and fusion.solid is not None:
-        joined = _join_missed_bone(occ, lo, h, fusion)
+        joined = _join_missed_bone(occ, lo, h, fusion, kept=_contour_keeps(occ))
     if joined is not occ:
         # The join is kept only when it adds no tunnel: the lace of a thin plate that the
         # thresholds hold and Poisson smoothed over is no process of the bone.
@@ -409,17 +409,36 @@ def _contour_fused(occ: np.ndarray, lo, h: float, fusion: Optional[Fusion],
     return out
 
 
-def _join_missed_bone(occ: np.ndarray, lo, h: float, fusion: Fusion) -> np.ndarray:
+def _contour_keeps(occ: np.ndarray) -> np.ndarray:
+    """What of ``occ`` the contour keeps: the largest component of its smoothed occupancy at
+    the 0.5 level (:func:`_contour_fused` without the fusion). A thin neck of a process that
+    Poisson made thinner than the smoothing cuts it off, and the contour drops what lies
+    beyond."""
+    field = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA) >= 0.5
+    lab, n = ndimage.label(field)
+    if n <= 1:
+        return field
+    sizes = np.bincount(lab.ravel())
+    sizes[0] = 0
+    return lab == int(np.argmax(sizes))
+
+
+def _join_missed_bone(occ: np.ndarray, lo, h: float, fusion: Fusion,
+                      kept: Optional[np.ndarray] = None) -> np.ndarray:
     """occ joined by the bone of ``fusion.solid`` it misses where that bone reaches farther
     than ``fusion.solid_reach_mm`` from it (a process, not the partial-volume shell along the
     surface), at least reach^3 of it so far out, connected to occ through the solid: that
-    far part with the solid between it and occ (within the reach of the far part)."""
+    far part with the solid between it and occ (within the reach of the far part).
+    ``kept``: what of occ the contour keeps (:func:`_contour_keeps`), when that is less than
+    occ: the bone is measured against it (a process whose neck the smoothing cuts is missed
+    beyond the neck, though occ still holds a thin thread of it)."""
     from ..mesh.distance import distance_outside
 
     solid = _label_on(fusion, occ.shape, np.asarray(lo, np.float64), h, fusion.solid)
-    missed = solid & ~occ
+    base = occ if kept is None else kept
+    missed = solid & ~base
     reach = max(fusion.solid_reach_mm, 2.0 * h)
-    dist_occ = distance_outside(occ, h)
+    dist_occ = distance_outside(base, h)
     far = missed & (dist_occ > reach)
     if not far.any():
         fusion.info.update(joined_bone_mm3=0.0, joined_pieces=0)
