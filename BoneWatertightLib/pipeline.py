@@ -778,7 +778,7 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     if fusion.info.get("joined_pieces"):
         bone.fallbacks.add("poisson", "bone the thresholds hold that the Poisson surface missed "
                            f"by more than {fusion.solid_reach_mm:g} mm (a thin process it "
-                           "detached) was joined to M0 "
+                           "detached, or thinned to a thread the remeshing cuts) was joined to M0 "
                            f"({fusion.info['joined_bone_mm3']:.0f} mm^3)",
                            int(fusion.info["joined_pieces"]), "pieces")
     if fusion.info.get("narrow_plugs"):
