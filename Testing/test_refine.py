@@ -154,3 +154,16 @@ def test_the_back_off_keeps_the_part_of_a_step_that_flips_nothing():
             assert 0.1 < moved < 1.0, moved
         else:
             assert moved == 0.0
+
+
+def test_the_refinement_moves_no_vertex_farther_than_its_bound_in_all():
+    """A sphere 3 mm outside a solid ball's edge: each pass may move a vertex by at most
+    MAX_SHIFT_MM, and so may the whole refinement (before, three passes took it 3 mm: the
+    thin rim of a cup on 2.5 mm slices, whose blurred edge recedes, was pulled 3.8 mm in)."""
+    ct, d, shift = _half_thin_ball(thin=12.0)
+    s = sphere_mesh(15.0, 0.6)
+    out, moved, _, _ = refine.refine_to_edges(s.vertices + shift, s.faces, ct, d, ht=200.0,
+                                               edge_level=None)
+    r = np.linalg.norm(out - shift, axis=1)
+    assert np.abs(moved).max() <= refine.MAX_SHIFT_MM + 0.05
+    assert np.all(r > 15.0 - refine.MAX_SHIFT_MM - 0.05) and np.median(r) < 13.7

@@ -221,7 +221,8 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         v, _, found, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
                                       smoothness, damping, ops=ops, edge_level=edge_level,
                                       allowed=allowed, plate_targets=plate_targets,
-                                      fallbacks=fallbacks, profiles=first if i == 0 else None)
+                                      fallbacks=fallbacks, profiles=first if i == 0 else None,
+                                      start=vertices)
         frac = float(found.mean())
         if progress:
             progress((i + 1) / (passes + VERIFY_ROUNDS), f"edge refinement {i + 1}/{passes}")
@@ -252,7 +253,7 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         v, _, _, ok = refine_pass(v, faces, ct_smooth, spacing, ht, max_shift, min_contrast,
                                   smoothness, damping, ops=ops, edge_level=edge_level,
                                   allowed=allowed, plate_targets=plate_targets,
-                                  fallbacks=fallbacks)
+                                  fallbacks=fallbacks, start=vertices)
         if not ok:
             note("the re-refinement of the vertices the check put back was reverted (the flip "
                  "back-off gave up)", int(reverted.sum()), "vertices", f"round {r + 1}")
@@ -348,7 +349,7 @@ def edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
 def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
                 min_contrast=MIN_CONTRAST_HU, smoothness=REFINE_ALPHA, damping=REFINE_BETA, ops=None,
                 edge_level=None, allowed=None, plate_targets=None,
-                fallbacks=None, profiles=None):
+                fallbacks=None, profiles=None, start=None):
     """Return (new vertices, per-vertex shift along the normal, edge found (n,) bool, ok).
 
     The edge points are soft targets of one regularised Laplacian step (as in the deformation)
@@ -365,13 +366,17 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
         edge_level = 0.5 if not np.isfinite(reference) else ("slab", reference)
     n, t_cross, ok, _ = edge_crossings(vertices, faces, ct_smooth, spacing, ht, edge_level,
                                        min_contrast, profiles=profiles, allowed=allowed)
-    shift = np.where(ok, np.clip(t_cross, -max_shift, max_shift), 0.0)
+    # The bound holds for the whole refinement: a pass's target lies within max_shift of where
+    # the refinement started (``start``), not of where the last pass left the vertex.
+    done = 0.0 if start is None else np.einsum("ij,ij->i", vertices - start, n)
+    lo, hi = -max_shift - done, max_shift - done
+    shift = np.where(ok, np.clip(t_cross, lo, hi), 0.0)
     w = ok.astype(np.float64)
     if plate_targets is not None:
         # No edge on the profile, but a plate thinner than the CT resolves: its model's face.
         plate = plate_targets(vertices, n)
         use = ~ok & np.isfinite(plate)
-        shift = np.where(use, np.clip(np.nan_to_num(plate), -max_shift, max_shift), shift)
+        shift = np.where(use, np.clip(np.nan_to_num(plate), lo, hi), shift)
         w[use] = 1.0
     if ops is None:
         L = laplacian(len(vertices), faces)
