@@ -17,7 +17,8 @@ import scipy.sparse as sp
 from ..mesh.operators import (laplacian, ring_mean, safe_update, sample_field, solve_spd,
                               vertex_normals)
 
-# Largest move along the normal (mm).
+# Largest move along the normal (mm), of the whole refinement (its passes together): beyond it
+# an edge is no sub-voxel correction but the receding edge of a thin rim or process tip.
 MAX_SHIFT_MM = 1.5
 # Least peak - valley contrast (HU) for a profile to give an edge.
 MIN_CONTRAST_HU = 150.0
@@ -357,7 +358,8 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
     ``edge_level``: a number in (0, 1), or ("slab", full contrast in HU) for the blurred-slab
     model's level per vertex; None: that model with the full contrast of these vertices
     (:func:`contrast_reference`). ``profiles``: :func:`sample_profiles` of ``vertices``, when
-    already sampled."""
+    already sampled. ``start``: (n, 3) vertices where the refinement started; the targets lie
+    within ``max_shift`` of them along the normals (None: of ``vertices``)."""
     if profiles is None:
         profiles = sample_profiles(vertices, faces, ct_smooth, spacing)
     if edge_level is None:
