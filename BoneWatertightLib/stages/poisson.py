@@ -369,13 +369,14 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         occ = lab == int(np.argmax(sizes))
     occ = fill_holes(occ)
     joined = occ
+    smoothed = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
     if fusion is not None and fusion.solid is not None:
-        joined = _join_missed_bone(occ, lo, h, fusion, kept=_contour_keeps(occ))
+        joined = _join_missed_bone(occ, lo, h, fusion, kept=_contour_keeps(smoothed))
     if joined is not occ:
         # The join is kept only when it adds no tunnel: the lace of a thin plate that the
         # thresholds hold and Poisson smoothed over is no process of the bone.
         before = dict(fusion.info)
-        plain = _contour_fused(occ, lo, h, fusion, smooth_iterations)
+        plain = _contour_fused(occ, lo, h, fusion, smooth_iterations, smoothed)
         plain_state = (dict(fusion.info), fusion.fill_mask)
         fusion.info, fusion.fill_mask = before, None
         out = _contour_fused(joined, lo, h, fusion, smooth_iterations)
@@ -386,7 +387,7 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
             fusion.info.update(joined_bone_mm3=0.0, joined_pieces=0, join_dropped_mm3=dropped)
             out = plain
     else:
-        out = _contour_fused(occ, lo, h, fusion, smooth_iterations)
+        out = _contour_fused(occ, lo, h, fusion, smooth_iterations, smoothed)
     if out is None or out.n_faces < MIN_REMESH_FACES:
         # A Poisson surface only a few grid steps across smooths away below the 0.5 level.
         raise _too_small(edge_length, out.n_faces if out else 0)
@@ -394,10 +395,13 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
 
 
 def _contour_fused(occ: np.ndarray, lo, h: float, fusion: Optional[Fusion],
-                   smooth_iterations: int) -> Optional[Surface]:
+                   smooth_iterations: int, smoothed: Optional[np.ndarray] = None
+                   ) -> Optional[Surface]:
     """The 0.5 contour of the smoothed occupancy ``occ`` with the fusion's plates, carve and
-    tunnel fill (see :func:`remesh`); None when nothing reaches the level."""
-    field = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
+    tunnel fill (see :func:`remesh`); None when nothing reaches the level. ``smoothed``: occ
+    already smoothed (REMESH_SMOOTH_SIGMA), when at hand; it is not modified."""
+    field = (ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
+             if smoothed is None else smoothed.copy())
     if fusion is not None and fusion.plates is not None:
         np.maximum(field, fusion.plates(field.shape, lo, h), out=field)
     if fusion is not None and fusion.carve is not None and fusion.label is not None:
@@ -409,12 +413,12 @@ def _contour_fused(occ: np.ndarray, lo, h: float, fusion: Optional[Fusion],
     return out
 
 
-def _contour_keeps(occ: np.ndarray) -> np.ndarray:
-    """What of ``occ`` the contour keeps: the largest component of its smoothed occupancy at
-    the 0.5 level (:func:`_contour_fused` without the fusion). A thin neck of a process that
-    Poisson made thinner than the smoothing cuts it off, and the contour drops what lies
-    beyond."""
-    field = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA) >= 0.5
+def _contour_keeps(smoothed: np.ndarray) -> np.ndarray:
+    """What of an occupancy the contour keeps, given it ``smoothed`` (REMESH_SMOOTH_SIGMA): the
+    largest component at the 0.5 level (:func:`_contour_fused` without the fusion). A thin neck
+    of a process that Poisson made thinner than the smoothing cuts it off, and the contour
+    drops what lies beyond."""
+    field = smoothed >= 0.5
     lab, n = ndimage.label(field)
     if n <= 1:
         return field
