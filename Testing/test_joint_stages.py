@@ -659,7 +659,9 @@ def test_a_surface_far_outside_its_segment_gets_a_warning():
     shape = (50, 50, 50)
     label = _ball(shape, (25, 25, 25), 10)
     near = _measure(_ball(shape, (25, 25, 25), 11), label)
-    assert near.ok and near.warnings == []
+    # no excursion warning; its volume (1.3 x the segment's) is said on its own
+    assert near.ok and len(near.warnings) == 1
+    assert near.warnings[0].startswith("bone: the surface encloses")
     far = _measure(_ball(shape, (25, 25, 25), 14), label)
     assert far.p95_excursion_mm > 2.0 * 1.3 + 0.5
     assert not far.problems and "unlabelled neighbouring bone" in far.warnings[0]
@@ -889,9 +891,32 @@ def test_losing_part_of_what_the_segment_clearly_covers_warns():
     assert p.warnings[0].startswith("T11: 11 % of what the segment clearly covers (more than "
                                     "2.5 mm inside it) is outside the surface")
     assert "1.4 ml against the segment's 2.2 ml (61 %)" in p.warnings[0]
-    assert not gated(0.03).warnings
+    # a few % of the core (a 3 mm label's stair steps) is no lost part, but a surface far from
+    # the segment's volume is still said, with the mean offset it amounts to
+    p = gated(0.03)
+    assert not p.problems and len(p.warnings) == 1
+    assert p.warnings[0].startswith("T11: the surface encloses 1.4 ml, 61 % of the segment's "
+                                    "2.2 ml")
     p = gated(0.2)
     assert len(p.problems) == 1 and not p.warnings
+
+
+def test_a_surface_far_from_the_segments_volume_is_said_with_its_mean_offset():
+    """Within 5 % of the segment's volume nothing is said; beyond, a warning gives both
+    volumes and the mean offset of the boundary (volume difference / area), inside or out."""
+    def gated(surface_ml):
+        p = plausibility.Plausibility(segment_ml=65.9, surface_ml=surface_ml,
+                                      volume_ratio=surface_ml / 65.9, surface_area_mm2=15000.0)
+        return plausibility.gate(p, coarseness=3.0, band_mm=3.0, name="L4")
+
+    assert not gated(64.0).warnings and not gated(68.5).warnings
+    p = gated(59.8)
+    assert not p.problems and len(p.warnings) == 1
+    assert p.warnings[0].startswith("L4: the surface encloses 59.8 ml, 91 % of the segment's "
+                                    "65.9 ml: on average its boundary lies 0.41 mm inside")
+    assert "edge_level 0.5" in p.warnings[0]
+    p = gated(72.0)
+    assert "0.41 mm outside" in p.warnings[0] and "edge_level" not in p.warnings[0]
 
 
 def _ball_in_cup(hide_deg=35.0, short=5.0, n=56):
