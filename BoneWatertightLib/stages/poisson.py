@@ -357,21 +357,18 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         hi = hi + np.ceil(np.maximum(nz.max(axis=0) + pad - hi, 0.0) / h) * h
     dims = np.ceil((hi - lo) / h).astype(int) + 1
     occ = inside_mask(surface, tuple(int(v) for v in dims[::-1]), h, lo)
-    lab, n = ndimage.label(occ)
-    if n == 0:
+    if not occ.any():
         if np.ptp(surface.vertices, axis=0).min() < 2 * h:
             # No grid centre inside a surface thinner than two grid steps: too small.
             raise _too_small(edge_length, 0)
         raise ReconstructionError("Remeshing lost the surface (empty rasterisation).")
-    if n > 1:
-        sizes = np.bincount(lab.ravel())
-        sizes[0] = 0
-        occ = lab == int(np.argmax(sizes))
-    occ = fill_holes(occ)
+    occ = fill_holes(_largest_component(occ))
     joined = occ
     smoothed = ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
     if fusion is not None and fusion.solid is not None:
-        joined = _join_missed_bone(occ, lo, h, fusion, kept=_contour_keeps(smoothed))
+        # What the contour keeps: the largest piece of the smoothed occupancy (a thin neck of a
+        # process that Poisson made thinner than the smoothing cuts it off).
+        joined = _join_missed_bone(occ, lo, h, fusion, _largest_component(smoothed >= 0.5))
     if joined is not occ:
         # The join is kept only when it adds no tunnel: the lace of a thin plate that the
         # thresholds hold and Poisson smoothed over is no process of the bone.
@@ -413,36 +410,31 @@ def _contour_fused(occ: np.ndarray, lo, h: float, fusion: Optional[Fusion],
     return out
 
 
-def _contour_keeps(smoothed: np.ndarray) -> np.ndarray:
-    """What of an occupancy the contour keeps, given it ``smoothed`` (REMESH_SMOOTH_SIGMA): the
-    largest component at the 0.5 level (:func:`_contour_fused` without the fusion). A thin neck
-    of a process that Poisson made thinner than the smoothing cuts it off, and the contour
-    drops what lies beyond."""
-    field = smoothed >= 0.5
-    lab, n = ndimage.label(field)
+def _largest_component(mask: np.ndarray) -> np.ndarray:
+    """The largest 6-connected component of ``mask`` (mask itself when it has one or none)."""
+    lab, n = ndimage.label(mask)
     if n <= 1:
-        return field
+        return mask
     sizes = np.bincount(lab.ravel())
     sizes[0] = 0
     return lab == int(np.argmax(sizes))
 
 
 def _join_missed_bone(occ: np.ndarray, lo, h: float, fusion: Fusion,
-                      kept: Optional[np.ndarray] = None) -> np.ndarray:
+                      kept: np.ndarray) -> np.ndarray:
     """occ joined by the bone of ``fusion.solid`` it misses where that bone reaches farther
     than ``fusion.solid_reach_mm`` from it (a process, not the partial-volume shell along the
     surface), at least reach^3 of it so far out, connected to occ through the solid: that
     far part with the solid between it and occ (within the reach of the far part).
-    ``kept``: what of occ the contour keeps (:func:`_contour_keeps`), when that is less than
-    occ: the bone is measured against it (a process whose neck the smoothing cuts is missed
-    beyond the neck, though occ still holds a thin thread of it)."""
+    ``kept``: what of occ the contour keeps (the largest piece of its smoothed occupancy): the
+    bone is measured against it (a process whose neck the smoothing cuts is missed beyond the
+    neck, though occ still holds a thin thread of it)."""
     from ..mesh.distance import distance_outside
 
     solid = _label_on(fusion, occ.shape, np.asarray(lo, np.float64), h, fusion.solid)
-    base = occ if kept is None else kept
-    missed = solid & ~base
+    missed = solid & ~kept
     reach = max(fusion.solid_reach_mm, 2.0 * h)
-    dist_occ = distance_outside(base, h)
+    dist_occ = distance_outside(kept, h)
     far = missed & (dist_occ > reach)
     if not far.any():
         fusion.info.update(joined_bone_mm3=0.0, joined_pieces=0)
