@@ -91,3 +91,23 @@ def test_fill_holes_is_scipys_on_hollow_shapes_with_holes_at_the_border():
     for m in (shell, closed, noisy, np.zeros((4, 5, 6), bool), np.ones((4, 5, 6), bool)):
         assert np.array_equal(fill_holes(m), ndimage.binary_fill_holes(m))
     assert fill_holes(closed)[20, 18, 15] and not closed[20, 18, 15]
+
+
+def test_visible_points_with_hulls_ahead_on_threads_are_those_of_one_thread(monkeypatch):
+    from BoneWatertightLib.stages import visible
+
+    # boundary voxels of a dented ellipsoid on a 0.5 mm lattice (views stop early on it)
+    g = np.arange(-16.0, 16.01, 0.5)
+    z, y, x = np.meshgrid(g, g, g, indexing="ij")
+    inside = (x / 14) ** 2 + (y / 9) ** 2 + (z / 7) ** 2 <= 1.0
+    inside &= ~(((x - 10) ** 2 + y ** 2 + (z - 5) ** 2) < 16)
+    edge = inside & ~ndimage.binary_erosion(inside)
+    points = np.argwhere(edge)[:, ::-1] * 0.5
+    monkeypatch.setattr(visible, "HULL_THREADS", 1)
+    one = visible.visible_points(points, 0.5, full=True)
+    monkeypatch.setattr(visible, "HULL_THREADS", 2)
+    monkeypatch.setattr(visible.os, "cpu_count", lambda: 2)
+    two = visible.visible_points(points, 0.5, full=True)
+    assert one[1]["views_used"] < 14  # the views stopped early: a hull ahead was not used
+    assert np.array_equal(one[0], two[0]) and np.array_equal(one[2], two[2])
+    assert one[1] == two[1]
