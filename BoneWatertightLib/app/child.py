@@ -804,8 +804,8 @@ class ChildRun:
             if ext == ".vtp":
                 out[key] = meshes.read_surface(path, "LPS")
             elif ext == ".ply":
-                import vtk
-                from vtk.util import numpy_support as ns
+                from .. import _vtk as vtk
+                from .._vtk import numpy_support as ns
 
                 reader = vtk.vtkPLYReader()
                 reader.SetFileName(path)

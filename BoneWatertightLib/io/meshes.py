@@ -68,8 +68,8 @@ def write_points(points: np.ndarray, path: PathLike, coordinate_system: str = "L
     ext = _extension(path)
     if ext not in (".ply", ".vtp"):
         raise InputError(f"Point clouds are written as .ply or .vtp, not '{ext}'.")
-    import vtk
-    from vtk.util import numpy_support as ns
+    from .. import _vtk as vtk
+    from .._vtk import numpy_support as ns
 
     poly = vtk.vtkPolyData()
     vpts = vtk.vtkPoints()
@@ -104,7 +104,7 @@ def _check_system(system: str) -> str:
 
 
 def _space_array(system: str):
-    import vtk
+    from .. import _vtk as vtk
 
     arr = vtk.vtkStringArray()
     arr.SetName("SPACE")
@@ -113,7 +113,7 @@ def _space_array(system: str):
 
 
 def _write_stl(poly, path, system):
-    import vtk
+    from .. import _vtk as vtk
 
     writer = vtk.vtkSTLWriter()
     writer.SetInputData(poly)
@@ -125,9 +125,9 @@ def _write_stl(poly, path, system):
 
 
 def _write_ply(poly, path, system):
-    import vtk
+    from .. import _vtk as vtk
 
-    from vtk.util import numpy_support as ns
+    from .._vtk import numpy_support as ns
 
     data = vtk.vtkPolyData()
     data.ShallowCopy(poly)
@@ -148,7 +148,7 @@ def _write_ply(poly, path, system):
 
 
 def _write_vtp(poly, path, system):
-    import vtk
+    from .. import _vtk as vtk
 
     data = vtk.vtkPolyData()
     data.ShallowCopy(poly)
@@ -164,7 +164,7 @@ def _write_vtp(poly, path, system):
 
 
 def _write_vtk(poly, path, system):
-    import vtk
+    from .. import _vtk as vtk
 
     data = vtk.vtkPolyData()
     data.ShallowCopy(poly)
@@ -182,7 +182,7 @@ def _write_vtk(poly, path, system):
 
 
 def _write_obj(poly, path, system):
-    import vtk
+    from .. import _vtk as vtk
 
     writer = vtk.vtkOBJWriter()
     writer.SetInputData(poly)
@@ -198,7 +198,7 @@ def _write_obj(poly, path, system):
 
 
 def _run_writer(writer, path):
-    import vtk
+    from .. import _vtk as vtk
 
     # VTK would print its own error (naming the temporary file) on stderr; the OSError below
     # says what happened instead.
@@ -224,7 +224,7 @@ def vtk_write_error(code: int, path) -> OSError:
     VTK reports every failed write as "out of disk space"; the file system's free space and
     the process's file-size limit tell a full disk (ENOSPC) from a size limit (EFBIG).
     """
-    import vtk
+    from .. import _vtk as vtk
 
     path = os.fspath(path)
     if 0 < code < 20000:
@@ -263,7 +263,7 @@ def read_surface(path: PathLike, coordinate_system: str = "LPS") -> Surface:
     taken to be LPS, as 3D Slicer does. The returned Surface's ``coordinate_system`` says
     which system its vertices are in.
     """
-    import vtk
+    from .. import _vtk as vtk
 
     path = os.fspath(path)
     target = _check_system(coordinate_system)

@@ -206,8 +206,8 @@ def _loops_cross(points2d: np.ndarray, loops: list) -> bool:
 
 def _triangulate_contours(points2d: np.ndarray, loops: list):
     """Fallback: VTK's contour triangulator (no interior points; holes by orientation)."""
-    import vtk
-    from vtk.util import numpy_support as ns
+    from .. import _vtk as vtk
+    from .._vtk import numpy_support as ns
 
     pts = vtk.vtkPoints()
     pts.SetData(ns.numpy_to_vtk(np.column_stack([points2d, np.zeros(len(points2d))]), deep=True))

@@ -85,8 +85,8 @@ def mean_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
 
 def to_polydata(surface: Surface, normals: bool = True):
     """vtkPolyData with points, triangles, point normals and the point_data arrays."""
-    import vtk
-    from vtk.util import numpy_support as ns
+    from .. import _vtk as vtk
+    from .._vtk import numpy_support as ns
 
     pts = vtk.vtkPoints()
     pts.SetData(ns.numpy_to_vtk(surface.vertices.astype(np.float64), deep=True))
@@ -209,8 +209,8 @@ def _ray_parity(vertices, faces, shape, spacing, origin):
 
 def _stencil_mask(surface: Surface, shape: tuple, spacing: float, origin) -> np.ndarray:
     """:func:`inside_mask` by VTK's polygon stencil (slices the surface at every z)."""
-    import vtk
-    from vtk.util import numpy_support as ns
+    from .. import _vtk as vtk
+    from .._vtk import numpy_support as ns
 
     image = vtk.vtkImageData()
     image.SetDimensions(int(shape[2]), int(shape[1]), int(shape[0]))
@@ -235,8 +235,8 @@ def _stencil_mask(surface: Surface, shape: tuple, spacing: float, origin) -> np.
 
 def from_polydata(poly, coordinate_system: str = "LPS") -> Surface:
     """Surface from a vtkPolyData of triangles (other polygons are triangulated)."""
-    import vtk
-    from vtk.util import numpy_support as ns
+    from .. import _vtk as vtk
+    from .._vtk import numpy_support as ns
 
     if poly.GetNumberOfPolys() and poly.GetPolys().GetMaxCellSize() > 3:
         tri = vtk.vtkTriangleFilter()

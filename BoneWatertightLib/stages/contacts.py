@@ -454,8 +454,8 @@ def _close_vertices(v, other_v, other_f, gap: float):
     """The vertices of ``v`` within ``gap`` + GAP_SEARCH_MM of the vertices of the other
     surface: (their exact distance to its triangles (mm), their indices, and for those closer
     than ``gap`` the unit direction away from their nearest point on it (else 0))."""
-    import vtk
-    from vtk.util import numpy_support as ns
+    from .. import _vtk as vtk
+    from .._vtk import numpy_support as ns
 
     empty = (np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3)))
     if not len(v) or not len(other_v):
@@ -524,7 +524,7 @@ def pair_report(va, fa, vb, fb, crossing_only: bool = False) -> dict:
     / ``b_inside_a`` (vertices of one inside the other), ``min_gap_mm`` (smallest distance of a
     vertex of one to the other surface) and ``contact_area_mm2`` (area of a's faces within
     1 mm of b). With ``crossing_only`` only the first is measured (the others stay 0 / None)."""
-    import vtk
+    from .. import _vtk as vtk
 
     va = np.asarray(va, dtype=np.float64)
     vb = np.asarray(vb, dtype=np.float64)
@@ -555,7 +555,7 @@ def pair_report(va, fa, vb, fb, crossing_only: bool = False) -> dict:
         if len(points) == 0:
             return np.zeros(0, bool)
         pts = vtk.vtkPoints()
-        from vtk.util import numpy_support as ns
+        from .._vtk import numpy_support as ns
         pts.SetData(ns.numpy_to_vtk(np.ascontiguousarray(points), deep=True))
         poly = vtk.vtkPolyData()
         poly.SetPoints(pts)

@@ -696,8 +696,8 @@ def contour(field_zyx: np.ndarray, origin, h: float, level: float,
     relax : bool
         Tangential relaxation of the vertices (near-uniform edges).
     """
-    import vtk
-    from vtk.util import numpy_support as ns
+    from .. import _vtk as vtk
+    from .._vtk import numpy_support as ns
 
     dims = field_zyx.shape[::-1]
     img = vtk.vtkImageData()
