@@ -185,6 +185,24 @@ def test_cap_retries_and_the_contour_triangulator_are_recorded(monkeypatch):
     _only(log, "cap", "contour triangulator")
 
 
+def test_a_cap_that_fails_on_the_border_is_cut_a_sliver_inside_and_recorded(monkeypatch):
+    v, f = icosphere(level=4, radius=10.0)
+    flags = np.zeros(len(f), np.uint8)
+    edge = _edge(v, f)
+    # every snap distance fails on the border plane itself (a surface nearly tangent to it)
+    answers = iter([True] * len(cap.SNAP_FRACTIONS))
+    monkeypatch.setattr(cap, "_crosses_near_plane", lambda *a: next(answers, False))
+    log = FallbackLog()
+    v2, f2, fl2, area = cap.cap_plane(v, f, flags, 2, +1, 4.0, edge, log)
+    assert check_surface(v2, f2).ok and area > 0
+    r = _only(log, "cap", "inside the image border")
+    assert r.where == "plane k high" and r.count == len(cap.SNAP_FRACTIONS)
+    shifted = 4.0 - cap.PLANE_SHIFTS[1] * edge
+    assert f"{cap.PLANE_SHIFTS[1] * edge:.2f} mm" in r.what
+    assert np.allclose(v2[np.unique(f2[fl2 == 1]), 2], shifted)  # the cap lies on the new plane
+    assert v2[:, 2].max() <= shifted + 1e-9
+
+
 # ---------------------------------------------------------------------------------- contacts
 
 def _two_overlapping_spheres():

@@ -25,6 +25,12 @@ from ..errors import ReconstructionError
 # 20-slice CT and on a proximal femur cut by a 3 mm pelvis CT).
 SNAP_FRACTIONS = (0.2, 0.1, 0.05, 0.02)
 SNAP_FRACTION = SNAP_FRACTIONS[0]
+# When every snap distance fails on the plane itself, the cut is made again this far (x the
+# edge length) inside the image: a surface nearly tangent to the border plane (a vertebra's
+# end plate on the slab's first slice) cuts it in many small loops close together, and a
+# slightly different plane cuts it cleanly (found on T12 of the 20-slice slab: the border
+# failed, 0.1 and 0.25 edge lengths inside did not).
+PLANE_SHIFTS = (0.0, 0.1, 0.25, 0.5)
 # Interior cap points keep this distance (x the edge length, and x each loop edge's length)
 # from the loop: outside every loop edge's diametral circle, so Delaunay keeps the loop edges.
 INTERIOR_MARGIN = 0.6
@@ -269,8 +275,11 @@ def cap_plane(vertices: np.ndarray, faces: np.ndarray, flags: np.ndarray, axis: 
         if fallbacks is not None:
             fallbacks.add("cap", what, count, unit, where)
 
-    for attempt, fraction in enumerate(SNAP_FRACTIONS):
-        v, f, fl, loop_edges = clip_by_plane(vertices, faces, flags, axis, side, position,
+    attempts = [(shift, fraction) for shift in PLANE_SHIFTS for fraction in SNAP_FRACTIONS]
+    for attempt, (shift, fraction) in enumerate(attempts):
+        # a shift moves the plane into the image (the part kept shrinks by a sliver)
+        at = position - side * shift * edge_length
+        v, f, fl, loop_edges = clip_by_plane(vertices, faces, flags, axis, side, at,
                                              fraction * edge_length)
         if len(loop_edges) == 0:
             return v, f, fl, 0.0
@@ -288,13 +297,17 @@ def cap_plane(vertices: np.ndarray, faces: np.ndarray, flags: np.ndarray, axis: 
             except CapError:
                 extra, tri = _triangulate_contours(p2, lloops)
                 contours = True
-            capped = _close(v, f, fl, ids, extra, tri, axis, side, position, uv)
-            if _crosses_near_plane(capped[0], capped[1], axis, position, edge_length):
+            capped = _close(v, f, fl, ids, extra, tri, axis, side, at, uv)
+            if _crosses_near_plane(capped[0], capped[1], axis, at, edge_length):
                 raise CapError("The cap at the image boundary would cross the surface there.")
             if contours:
                 note("the lattice triangulation lost a cut edge: VTK's contour triangulator "
                      "(no interior points) closed the cap", len(tri), "faces")
-            if attempt:
+            if shift:
+                note(f"cut {shift * edge_length:.2f} mm inside the image border (every snap "
+                     f"distance failed on the border itself) after: {error}", attempt,
+                     "retries")
+            elif attempt:
                 note(f"cut again with a smaller snap distance ({fraction:g} x the edge length) "
                      f"after: {error}", attempt, "retries")
             return capped
