@@ -488,6 +488,7 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
                      lambda k, part: initial_surface_stage(run, ws, k, part))
     territory_stage(run, ws, bones)
     deform_stage(run, ws, bones)
+    release_grids(run, ws, bones)
     contact_stage(run, ws, bones)
     sub = run.stage("checks")
     done = run.each(ws.targets, sub, lambda k, part: finish_bone(run, ws, bones[k], part),
@@ -826,6 +827,8 @@ def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
         ws.ct_smooth = ndimage.gaussian_filter(
             ws.prep.ct, sigma=max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / ws.d),
             mode="nearest")
+    # No later stage reads the resampled or the filtered CT, or the crop on the CT's own grid.
+    ws.ct_f = ws.prep.ct = ws.prep.native = None
 
     def allowed_of(k):
         return _contacts.allowed_test(ws.territories.get(k), ws.d, params.min_gap)
@@ -926,6 +929,19 @@ def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
                                  contrast_hu=_finite_or_none(used),
                                  contrast_from=shared_from)
     bone.vertices = verts
+
+
+def release_grids(run: _Run, ws: Workspace, bones: dict) -> None:
+    """Drop the volumes no later stage reads once the bones are deformed: each bone's threshold
+    masks and the fields M0 was fused with (the deformation drops the CT's copies but the
+    refinement's smoothed one). The contacts and the finishing stages measure on volumes of
+    their own. With ``keep_intermediates`` the masks stay (they are reported)."""
+    for bone in bones.values():
+        if bone.masks is not None and not run.params.keep_intermediates:
+            masks = bone.masks
+            masks.w_h0 = masks.w_ht = masks.solid_h0 = masks.occupancy = masks.far = None
+        if bone.fusion is not None:
+            bone.fusion.carve = bone.fusion.bone = bone.fusion.solid = None
 
 
 def contact_stage(run: _Run, ws: Workspace, bones: dict) -> None:
