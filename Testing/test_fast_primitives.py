@@ -111,3 +111,27 @@ def test_visible_points_with_hulls_ahead_on_threads_are_those_of_one_thread(monk
     assert one[1]["views_used"] < 14  # the views stopped early: a hull ahead was not used
     assert np.array_equal(one[0], two[0]) and np.array_equal(one[2], two[2])
     assert one[1] == two[1]
+
+
+def test_hybrid_filter_with_its_filters_on_threads_is_the_plain_sequence():
+    from BoneWatertightLib.stages import filtering
+
+    rng = np.random.default_rng(5)
+    ct = (ndimage.gaussian_filter(rng.normal(0.0, 400.0, (30, 34, 28)), 2.0) * 6
+          + rng.normal(0.0, 30.0, (30, 34, 28))).astype(np.float32)
+    region = np.zeros(ct.shape, bool)
+    region[5:25, 6:30, 4:20] = True
+    out = filtering.hybrid_filter(ct, 0.6, sigma=0.5, rho=80.0, region=region)
+    # the plain sequence: smooth, edge voxels above the region's 80th gradient percentile,
+    # each moved half-way to the nearer of its 3x3x3 extremes
+    smooth = ndimage.gaussian_filter(ct, 0.5 / 0.6, mode="nearest",
+                                     truncate=filtering.GAUSSIAN_TRUNCATE)
+    grad = ndimage.gaussian_gradient_magnitude(smooth, sigma=filtering.GRADIENT_SIGMA_VOXELS,
+                                               mode="nearest")
+    edge = grad > np.percentile(grad[region], 80.0)
+    hi = ndimage.maximum_filter(smooth, size=3, mode="nearest")[edge]
+    lo = ndimage.minimum_filter(smooth, size=3, mode="nearest")[edge]
+    v = smooth[edge]
+    expected = smooth.copy()
+    expected[edge] = v + filtering.TOGGLE_WEIGHT * (np.where(hi - v < v - lo, hi, lo) - v)
+    assert edge.any() and np.array_equal(out, expected)
