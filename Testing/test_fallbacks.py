@@ -160,6 +160,20 @@ def test_an_opening_that_would_empty_the_mask_is_recorded():
     assert (r.count, r.where) == (3, "W_H0")
 
 
+def test_the_two_windows_opened_at_once_note_their_fallbacks_in_order():
+    rod = np.zeros((9, 9, 9), bool)
+    rod[4, 4, 3:6] = True  # opening removes all of it: kept unopened, noted
+    block = np.zeros((9, 9, 9), bool)
+    block[2:7, 2:7, 2:7] = True
+    for first, second, expected in ((rod, block, ["W_H0"]), (block, rod, ["W_HT"]),
+                                    (rod, rod, ["W_H0", "W_HT"])):
+        log = FallbackLog()
+        a, b = threshold._open_close_both((first, "W_H0"), (second, "W_HT"), 1, 1, log)
+        assert np.array_equal(a, threshold._open_close(first, 1, 1))
+        assert np.array_equal(b, threshold._open_close(second, 1, 1))
+        assert [r.where for r in log] == expected
+
+
 # ---------------------------------------------------------------------------------- caps
 
 def test_cap_retries_and_the_contour_triangulator_are_recorded(monkeypatch):

