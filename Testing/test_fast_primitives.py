@@ -135,3 +135,23 @@ def test_hybrid_filter_with_its_filters_on_threads_is_the_plain_sequence():
     expected = smooth.copy()
     expected[edge] = v + filtering.TOGGLE_WEIGHT * (np.where(hi - v < v - lo, hi, lo) - v)
     assert edge.any() and np.array_equal(out, expected)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_valley_filters_on_threads_equal_the_plain_filters(monkeypatch, threads):
+    from BoneWatertightLib.stages import ownership
+
+    monkeypatch.setattr(ownership.os, "cpu_count", lambda: threads)
+    rng = np.random.default_rng(threads)
+    ct = (ndimage.gaussian_filter(rng.normal(0.0, 300.0, (41, 23, 30)), 1.2) * 5
+          ).astype(np.float32)
+    k = 2 * max(1, int(round(2.0 / 0.6))) + 1
+    cube = ndimage.minimum_filter(ndimage.maximum_filter(ct, size=k, mode="nearest"),
+                                  size=k, mode="nearest") - ct
+    assert np.array_equal(ownership.valley_map(ct, 0.6, 2.0), cube)
+    plain = np.zeros(ct.shape, np.float32)
+    for axis in range(3):
+        top = ndimage.minimum_filter1d(ndimage.maximum_filter1d(ct, k, axis=axis, mode="nearest"),
+                                       k, axis=axis, mode="nearest") - ct
+        np.maximum(plain, top, out=plain)
+    assert np.array_equal(ownership.gap_valley(ct, 0.6, 2.0), plain)

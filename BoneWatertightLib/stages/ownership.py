@@ -42,6 +42,7 @@ label is a bone: the targets and their neighbours). Axis order (z, y, x) through
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,6 +51,8 @@ from scipy import ndimage
 from .threshold import SIX, bbox_slices, segment_region
 from ..mesh.distance import distance_inside, distance_outside
 
+# The valley filters run on up to this many threads (scipy's filters release the GIL).
+MAX_FILTER_THREADS = 4
 # A core is deeper than max(CORE_MIN_MM, coarseness) inside its label, but at most this
 # fraction of the label's deepest point (thin bones keep a core).
 CORE_MIN_MM = 1.5
@@ -211,9 +214,52 @@ def unsupported_parts(ct: np.ndarray, label: np.ndarray, core: np.ndarray, spaci
 def valley_map(ct: np.ndarray, spacing: float, radius_mm: float) -> np.ndarray:
     """Black top-hat closing(ct) - ct with a cube of half-width ``radius_mm`` (separable)."""
     k = 2 * max(1, int(round(radius_mm / spacing))) + 1
-    closed = ndimage.minimum_filter(ndimage.maximum_filter(ct, size=k, mode="nearest"),
-                                    size=k, mode="nearest")
-    return closed - ct
+
+    def tophat(part):
+        closed = ndimage.minimum_filter(ndimage.maximum_filter(part, size=k, mode="nearest"),
+                                        size=k, mode="nearest")
+        return closed - part
+
+    return _in_slabs(tophat, ct, 2 * (k // 2))
+
+
+def _in_slabs(func, arr: np.ndarray, halo: int) -> np.ndarray:
+    """``func(arr)`` for a filter whose output at a voxel depends on the input within ``halo``
+    voxels only: computed in slabs along axis 0 (each with ``halo`` slices of its neighbours'
+    input, then cut back), one per CPU on threads (scipy's filters release the GIL). The same
+    values as one call: the borders of the array are the array's own in every slab."""
+    threads = min(os.cpu_count() or 1, MAX_FILTER_THREADS)
+    n = arr.shape[0]
+    if threads <= 1 or n < threads * max(2 * halo, 8):
+        return func(arr)
+    from concurrent.futures import ThreadPoolExecutor
+
+    cuts = np.linspace(0, n, threads + 1).round().astype(int)
+
+    def part(i):
+        lo, hi = max(0, cuts[i] - halo), min(n, cuts[i + 1] + halo)
+        return func(arr[lo:hi])[cuts[i] - lo:cuts[i + 1] - lo]
+
+    with ThreadPoolExecutor(threads, thread_name_prefix="slabs") as pool:
+        return np.concatenate(list(pool.map(part, range(threads))), axis=0)
+
+
+def _tophat_1d(ct: np.ndarray, k: int, axis: int) -> np.ndarray:
+    """The 1-D black top-hat of ``ct`` along ``axis`` (segments of ``k`` voxels)."""
+    return ndimage.minimum_filter1d(ndimage.maximum_filter1d(ct, k, axis=axis, mode="nearest"),
+                                    k, axis=axis, mode="nearest") - ct
+
+
+def _tophats(ct: np.ndarray, k: int, axes) -> dict:
+    """{axis: :func:`_tophat_1d`} for each of ``axes``, computed at once on threads."""
+    axes = list(axes)
+    threads = min(os.cpu_count() or 1, MAX_FILTER_THREADS, len(axes))
+    if threads <= 1:
+        return {a: _tophat_1d(ct, k, a) for a in axes}
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(threads, thread_name_prefix="tophat") as pool:
+        return dict(zip(axes, pool.map(lambda a: _tophat_1d(ct, k, a), axes)))
 
 
 def gap_valley(ct: np.ndarray, spacing: float, radius_mm: float) -> np.ndarray:
@@ -223,9 +269,7 @@ def gap_valley(ct: np.ndarray, spacing: float, radius_mm: float) -> np.ndarray:
     cube does not fit into (float32, HU)."""
     k = 2 * max(1, int(round(radius_mm / spacing))) + 1
     out = np.zeros(ct.shape, np.float32)
-    for axis in range(3):
-        top = ndimage.minimum_filter1d(ndimage.maximum_filter1d(ct, k, axis=axis, mode="nearest"),
-                                       k, axis=axis, mode="nearest") - ct
+    for top in _tophats(ct, k, range(3)).values():
         np.maximum(out, top, out=out)
     return out
 
@@ -622,6 +666,7 @@ def _interfaces(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, spacing: float, 
     minimum of the CT between two cortices; a bone cut across its marrow is not."""
     k = 2 * max(1, int(round(radius_mm / spacing))) + 1
     out: dict = {}
+    faces = {}
     for axis in range(3):
         a = [slice(None)] * 3
         b = [slice(None)] * 3
@@ -630,10 +675,11 @@ def _interfaces(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, spacing: float, 
         a, b = tuple(a), tuple(b)
         wa, wb = ws[a], ws[b]
         sel = (wa != wb) & (wa > 0) & (wb > 0) & fg[a] & fg[b]
-        if not sel.any():
-            continue
-        top = ndimage.minimum_filter1d(ndimage.maximum_filter1d(ct, k, axis=axis, mode="nearest"),
-                                       k, axis=axis, mode="nearest") - ct
+        if sel.any():
+            faces[axis] = (a, b, wa, wb, sel)
+    tops = _tophats(ct, k, faces)
+    for axis, (a, b, wa, wb, sel) in faces.items():
+        top = tops[axis]
         seen = np.maximum(top[a][sel], top[b][sel]) >= SEEN_VALLEY_QUANTA * quantum
         la = np.minimum(wa[sel], wb[sel]).astype(np.int64)
         lb = np.maximum(wa[sel], wb[sel]).astype(np.int64)
