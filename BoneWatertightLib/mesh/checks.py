@@ -33,8 +33,12 @@ _BARY_TOL = 1e-9
 # Angle (rad) under which two faces sharing an edge are considered folded onto each other,
 # and under which two directions in a plane are considered the same.
 _ANGLE_TOL = 1e-7
-# Candidate pairs handled per narrow-phase batch (bounds the memory of the broad phase).
-_PAIR_BATCH = 2_000_000
+# Candidate pairs handled per narrow-phase batch (bounds the memory of the broad phase and of
+# the narrow phase's temporaries). Measured on a femur (87 k faces) and a hip bone (95 k):
+# 2 M pairs per batch 0.30 / 0.31 s and 199 / 220 MB at the peak, 500 k 0.24 / 0.26 s and
+# 114 / 120 MB (smaller batches stay in cache); the deformation's full checks set the run's
+# peak memory.
+_PAIR_BATCH = 500_000
 
 
 @dataclass
