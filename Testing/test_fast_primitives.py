@@ -94,6 +94,7 @@ def test_fill_holes_is_scipys_on_hollow_shapes_with_holes_at_the_border():
 
 
 def test_visible_points_with_hulls_ahead_on_threads_are_those_of_one_thread(monkeypatch):
+    from BoneWatertightLib import threads
     from BoneWatertightLib.stages import visible
 
     # boundary voxels of a dented ellipsoid on a 0.5 mm lattice (views stop early on it)
@@ -106,7 +107,7 @@ def test_visible_points_with_hulls_ahead_on_threads_are_those_of_one_thread(monk
     monkeypatch.setattr(visible, "HULL_THREADS", 1)
     one = visible.visible_points(points, 0.5, full=True)
     monkeypatch.setattr(visible, "HULL_THREADS", 2)
-    monkeypatch.setattr(visible.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(threads.os, "cpu_count", lambda: 2)
     two = visible.visible_points(points, 0.5, full=True)
     assert one[1]["views_used"] < 14  # the views stopped early: a hull ahead was not used
     assert np.array_equal(one[0], two[0]) and np.array_equal(one[2], two[2])
@@ -139,9 +140,10 @@ def test_hybrid_filter_with_its_filters_on_threads_is_the_plain_sequence():
 
 @pytest.mark.parametrize("threads", [1, 2, 3])
 def test_valley_filters_on_threads_equal_the_plain_filters(monkeypatch, threads):
+    from BoneWatertightLib import threads as threads_module
     from BoneWatertightLib.stages import ownership
 
-    monkeypatch.setattr(ownership.os, "cpu_count", lambda: threads)
+    monkeypatch.setattr(threads_module.os, "cpu_count", lambda: threads)
     rng = np.random.default_rng(threads)
     ct = (ndimage.gaussian_filter(rng.normal(0.0, 300.0, (41, 23, 30)), 1.2) * 5
           ).astype(np.float32)

@@ -876,15 +876,20 @@ def test_contact_with_unlabelled_bone_without_a_joint_space_fails_or_warns():
     assert not p.problems and not p.warnings
 
 
+def _gate_3mm(name, **measures):
+    """plausibility.gate of these measures for a 3 mm segment (coarseness and band 3 mm)."""
+    return plausibility.gate(plausibility.Plausibility(**measures), coarseness=3.0, band_mm=3.0,
+                             name=name)
+
+
 def test_losing_part_of_what_the_segment_clearly_covers_warns():
     """A surface inside the segment's core (deeper than c/2 + 1 mm) over more than 5 % of it is
     returned with a warning
     that gives both volumes (a thin part lost, or a generous label: the user must look); a few %
     (a 3 mm label's stair steps) says nothing; beyond 15 % the run fails."""
     def gated(missing):
-        p = plausibility.Plausibility(segment_ml=2.2, surface_ml=1.35, volume_ratio=0.614,
-                                      missing_fraction=missing, core_missing_fraction=missing)
-        return plausibility.gate(p, coarseness=3.0, band_mm=3.0, name="T11")
+        return _gate_3mm("T11", segment_ml=2.2, surface_ml=1.35, volume_ratio=0.614,
+                         missing_fraction=missing, core_missing_fraction=missing)
 
     p = gated(0.112)
     assert not p.problems and len(p.warnings) == 1
@@ -905,9 +910,8 @@ def test_a_surface_far_from_the_segments_volume_is_said_with_its_mean_offset():
     """Within 5 % of the segment's volume nothing is said; beyond, a warning gives both
     volumes and the mean offset of the boundary (volume difference / area), inside or out."""
     def gated(surface_ml):
-        p = plausibility.Plausibility(segment_ml=65.9, surface_ml=surface_ml,
-                                      volume_ratio=surface_ml / 65.9, surface_area_mm2=15000.0)
-        return plausibility.gate(p, coarseness=3.0, band_mm=3.0, name="L4")
+        return _gate_3mm("L4", segment_ml=65.9, surface_ml=surface_ml,
+                         volume_ratio=surface_ml / 65.9, surface_area_mm2=15000.0)
 
     assert not gated(64.0).warnings and not gated(68.5).warnings
     p = gated(59.8)

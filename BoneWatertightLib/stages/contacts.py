@@ -31,6 +31,7 @@ from ..mesh.operators import laplacian, safe_update, sample_field, vertex_normal
 from ..mesh.surface import Surface, inside_mask, to_polydata
 from .threshold import bbox_slices, near
 from ..mesh.distance import signed_distance as signed_distance_map
+from ..threads import thread_map
 
 # Box margin (mm) of the signed distance fields.
 SDF_PAD_MM = 6.0
@@ -83,18 +84,8 @@ def territories(surfaces: dict, fixed: dict, shape: tuple, spacing: float, *,
     not voxelised again. ``threads``: bones worked at once (the same fields with any number)."""
     masks = _territory_masks(surfaces, fixed, shape, spacing, cache, threads)
     keys = list(surfaces if only is None else only)
-    return dict(zip(keys, _map(lambda k: _phi(k, masks, shape, spacing), keys, threads)))
-
-
-def _map(work, keys: list, threads: int) -> list:
-    """[work(k) for k in keys], on up to ``threads`` threads (scipy.ndimage, edt and numpy
-    release the GIL in their loops)."""
-    if threads <= 1 or len(keys) <= 1:
-        return [work(k) for k in keys]
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(min(threads, len(keys)), thread_name_prefix="contacts") as pool:
-        return list(pool.map(work, keys))
+    return dict(zip(keys, thread_map(lambda k: _phi(k, masks, shape, spacing), keys, threads,
+                                     "contacts")))
 
 
 def _territory_masks(surfaces: dict, fixed: dict, shape: tuple, spacing: float,
@@ -109,8 +100,8 @@ def _territory_masks(surfaces: dict, fixed: dict, shape: tuple, spacing: float,
             masks[k] = hit[1]
         else:
             todo.append(k)
-    done = _map(lambda k: _voxelize_local(surfaces[k][0], surfaces[k][1], shape, spacing), todo,
-                threads)
+    done = thread_map(lambda k: _voxelize_local(surfaces[k][0], surfaces[k][1], shape, spacing),
+                      todo, threads, "contacts")
     for k, entry in zip(todo, done):
         masks[k] = entry
         if cache is not None:
@@ -349,7 +340,7 @@ def resolve_contacts(surfaces: dict, fixed: dict, shape: tuple, spacing: float, 
                            pinned=(pinned or {}).get(k), operators=operators[k])
 
         record = {}
-        for k, out in zip(active, _map(work, active, threads)):
+        for k, out in zip(active, thread_map(work, active, threads, "contacts")):
             if out is None:
                 continue
             v2, beyond, moved, discarded, relaxed = out

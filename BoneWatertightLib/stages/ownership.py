@@ -42,7 +42,6 @@ label is a bone: the targets and their neighbours). Axis order (z, y, x) through
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,6 +49,7 @@ from scipy import ndimage
 
 from .threshold import SIX, bbox_slices, segment_region
 from ..mesh.distance import distance_inside, distance_outside
+from ..threads import cpu_threads, thread_map
 
 # The valley filters run on up to this many threads (scipy's filters release the GIL).
 MAX_FILTER_THREADS = 4
@@ -228,20 +228,17 @@ def _in_slabs(func, arr: np.ndarray, halo: int) -> np.ndarray:
     voxels only: computed in slabs along axis 0 (each with ``halo`` slices of its neighbours'
     input, then cut back), one per CPU on threads (scipy's filters release the GIL). The same
     values as one call: the borders of the array are the array's own in every slab."""
-    threads = min(os.cpu_count() or 1, MAX_FILTER_THREADS)
+    threads = cpu_threads(MAX_FILTER_THREADS)
     n = arr.shape[0]
     if threads <= 1 or n < threads * max(2 * halo, 8):
         return func(arr)
-    from concurrent.futures import ThreadPoolExecutor
-
     cuts = np.linspace(0, n, threads + 1).round().astype(int)
 
     def part(i):
         lo, hi = max(0, cuts[i] - halo), min(n, cuts[i + 1] + halo)
         return func(arr[lo:hi])[cuts[i] - lo:cuts[i + 1] - lo]
 
-    with ThreadPoolExecutor(threads, thread_name_prefix="slabs") as pool:
-        return np.concatenate(list(pool.map(part, range(threads))), axis=0)
+    return np.concatenate(thread_map(part, range(threads), threads, "slabs"), axis=0)
 
 
 def _tophat_1d(ct: np.ndarray, k: int, axis: int) -> np.ndarray:
@@ -253,13 +250,8 @@ def _tophat_1d(ct: np.ndarray, k: int, axis: int) -> np.ndarray:
 def _tophats(ct: np.ndarray, k: int, axes) -> dict:
     """{axis: :func:`_tophat_1d`} for each of ``axes``, computed at once on threads."""
     axes = list(axes)
-    threads = min(os.cpu_count() or 1, MAX_FILTER_THREADS, len(axes))
-    if threads <= 1:
-        return {a: _tophat_1d(ct, k, a) for a in axes}
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(threads, thread_name_prefix="tophat") as pool:
-        return dict(zip(axes, pool.map(lambda a: _tophat_1d(ct, k, a), axes)))
+    return dict(zip(axes, thread_map(lambda a: _tophat_1d(ct, k, a), axes,
+                                     cpu_threads(MAX_FILTER_THREADS), "tophat")))
 
 
 def gap_valley(ct: np.ndarray, spacing: float, radius_mm: float) -> np.ndarray:

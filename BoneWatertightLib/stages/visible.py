@@ -18,10 +18,10 @@ tests: the visible set is the same).
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
+
+from ..threads import cpu_threads
 
 # Most points fed to the hull (the surface voxels are thinned on a lattice beyond this).
 MAX_HULL_POINTS = 60000
@@ -72,7 +72,7 @@ def _hulls(points: np.ndarray, viewpoints: list, log_radius: float):
     """:func:`hpr_visible` of each viewpoint, in order, as a generator; with several CPUs the
     next views are computed ahead on threads (Qhull releases the GIL: 12 femur views 1.1 ->
     0.6 s on two threads). The caller may stop early: at most the views ahead are wasted."""
-    threads = min(os.cpu_count() or 1, HULL_THREADS)
+    threads = cpu_threads(HULL_THREADS)
     if threads <= 1:
         for vp in viewpoints:
             yield hpr_visible(points, vp, log_radius)

@@ -1,0 +1,27 @@
+"""Independent pieces of work on threads.
+
+scipy.ndimage's filters and morphology, Qhull and numpy's loops release the GIL, so pieces of
+work that do not depend on each other (bones, axes, slabs of a volume, two masks) run at once
+on several CPUs. The results are those of running them one after the other.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def cpu_threads(cap: int) -> int:
+    """Threads to use: one per CPU, at most ``cap`` (at least 1)."""
+    return max(1, min(os.cpu_count() or 1, cap))
+
+
+def thread_map(work, items, threads: int, name: str = "bonewatertight") -> list:
+    """[work(x) for x in items], on up to ``threads`` threads (in order; the first exception
+    is raised, as a loop would)."""
+    items = list(items)
+    if threads <= 1 or len(items) <= 1:
+        return [work(x) for x in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(threads, len(items)), thread_name_prefix=name) as pool:
+        return list(pool.map(work, items))
