@@ -41,6 +41,7 @@ from .mesh.cap import cap_plane
 from .mesh.checks import check_surface
 from .mesh.operators import sample_field
 from .mesh.surface import Surface, enclosed_volume, mean_edge_length, surface_area
+from .memory import release_free_memory
 from .params import Parameters
 from .progress import Progress, ProgressCallback
 from .report import (Counts, DistanceSummary, FallbackLog, JointReport, PairReport,
@@ -151,6 +152,7 @@ class JointResult:
 def _stage(progress: Progress, name: str) -> Progress:
     for n, a, b in STAGES:
         if n == name:
+            release_free_memory()  # what the last stage freed: the peak is the live data's
             sub = progress.stage(a, b)
             sub(0.0, name)
             return sub
@@ -899,6 +901,7 @@ def deform(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
 
 def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress) -> None:
     """Our sub-voxel edge refinement (stages.refine) and its support on the free surface."""
+    release_free_memory()  # the deformation's freed arrays: the profiles come on top
     params, d = run.params, ws.d
     before = bone.vertices
     plates = bone.plates
@@ -1091,6 +1094,7 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
         checks = check_surface(phys, faces)
     _raise_failed_checks(checks, phys, faces, planes, name)
     progress(0.6, f"{name}: plausibility")
+    release_free_memory()  # its distance maps come on top of what the checks freed
     with timed(bone.times, "plausibility"):
         plaus, box, segment = plausibility_of(run, ws, bone, verts, faces, phys, planes)
     warnings = _plausibility_warnings(run, plaus)

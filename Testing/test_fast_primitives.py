@@ -7,6 +7,8 @@
   one-sided transforms (and against scipy's exact transform).
 """
 
+import os
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
@@ -157,3 +159,72 @@ def test_valley_filters_on_threads_equal_the_plain_filters(monkeypatch, threads)
                                        k, axis=axis, mode="nearest") - ct
         np.maximum(plain, top, out=plain)
     assert np.array_equal(ownership.gap_valley(ct, 0.6, 2.0), plain)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_sampling_in_chunks_on_threads_is_one_interpolation(monkeypatch, threads):
+    from BoneWatertightLib import threads as threads_module
+    from BoneWatertightLib.mesh import operators
+    from BoneWatertightLib.stages import refine
+
+    monkeypatch.setattr(threads_module.os, "cpu_count", lambda: threads)
+    rng = np.random.default_rng(8)
+    field = ndimage.gaussian_filter(rng.normal(0.0, 500.0, (30, 26, 34)), 1.5).astype(np.float32)
+    points = rng.uniform(-2.0, 20.0, (5003, 3))  # some outside the grid (cval)
+    plain = ndimage.map_coordinates(field, (points[:, ::-1] / 0.6).T, order=1,
+                                    mode="constant", cval=-7.0)
+    monkeypatch.setattr(operators, "SAMPLE_CHUNK", 1000)  # 6 chunks, the last one short
+    assert np.array_equal(operators.sample_field(field, points, 0.6, cval=-7.0), plain)
+    cubic = ndimage.map_coordinates(field, (points[:, ::-1] / 0.6).T, order=3, mode="constant")
+    assert np.array_equal(operators.sample_field(field, points, 0.6, order=3), cubic)
+
+    # the refinement's profiles, a few vertices at a time: those of all vertices at once
+    from vtkmodules.vtkFiltersSources import vtkSphereSource
+
+    from BoneWatertightLib.mesh.surface import from_polydata
+
+    src = vtkSphereSource()
+    src.SetCenter(10.0, 8.0, 9.0)
+    src.SetRadius(5.0)
+    src.SetThetaResolution(40)
+    src.SetPhiResolution(30)
+    src.Update()
+    sphere = from_polydata(src.GetOutput())
+    monkeypatch.setattr(refine, "SAMPLE_CHUNK", 10**9)
+    whole = refine.sample_profiles(sphere.vertices, sphere.faces, field, 0.6)
+    monkeypatch.setattr(refine, "SAMPLE_CHUNK", 7 * 61 + 3)  # 7 vertices a chunk
+    parts = refine.sample_profiles(sphere.vertices, sphere.faces, field, 0.6)
+    assert whole[2].shape == (len(sphere.vertices), len(whole[1]))
+    for a, b in zip(whole, parts):
+        assert np.array_equal(a, b)
+
+
+def test_free_memory_goes_back_to_the_system():
+    import sys
+
+    from BoneWatertightLib.memory import release_free_memory
+
+    try:
+        glibc = sys.platform.startswith("linux") and bool(os.confstr("CS_GNU_LIBC_VERSION"))
+    except (AttributeError, ValueError, OSError):
+        glibc = False
+    assert release_free_memory() is glibc
+    if not glibc or any(k.startswith("MALLOC_") for k in os.environ):
+        return
+
+    def resident_mb():
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+    # A freed 1.6 MB block raises glibc's mmap threshold above it (as numpy's freed arrays do
+    # in a run), so the 0.8 MB blocks below come from the heap, whose freed pages stay
+    # resident until trimmed.
+    raise_threshold = np.ones(200_000)
+    del raise_threshold
+    blocks = [np.ones(100_000) for _ in range(300)]  # 240 MB
+    keep = blocks[-1]  # the heap's top stays in use: only a trim returns the pages below it
+    del blocks
+    before = resident_mb()
+    assert release_free_memory()
+    assert resident_mb() < before - 100.0
+    assert keep.sum() == 100_000

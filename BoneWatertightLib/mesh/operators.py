@@ -15,6 +15,7 @@ import scipy.sparse as sp
 from scipy import ndimage
 from scipy.sparse.linalg import cg
 
+from ..threads import cpu_threads, thread_map
 from .checks import find_self_intersections
 
 # Conjugate-gradient tolerance (relative residual) and iteration cap of solve_spd.
@@ -30,6 +31,11 @@ BACKOFF_GROW_ROUNDS = 8
 # Tangential relaxation of a fresh contour: iterations and step weight.
 RELAX_ITERATIONS = 5
 RELAX_WEIGHT = 0.5
+# sample_field interpolates this many points at a time (the grid coordinates of a chunk take
+# 24 bytes a point: 2.7 M profile samples at once took 190 MB), on up to SAMPLE_THREADS threads
+# (map_coordinates releases the GIL: 0.55 -> 0.32 s for 2.7 M points on 2 CPUs).
+SAMPLE_CHUNK = 1 << 19
+SAMPLE_THREADS = 2
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray, normalize: bool = True) -> np.ndarray:
@@ -121,8 +127,20 @@ def sample_field(field_zyx: np.ndarray, points_grid_mm: np.ndarray, spacing: flo
     -------
     (k,) array of the field's dtype
     """
-    coords = (points_grid_mm[:, ::-1] / spacing).T
-    return ndimage.map_coordinates(field_zyx, coords, order=order, mode="constant", cval=cval)
+    points_grid_mm = np.asarray(points_grid_mm)
+
+    def sample(start):
+        coords = (points_grid_mm[start:start + SAMPLE_CHUNK, ::-1] / spacing).T
+        return ndimage.map_coordinates(field_zyx, coords, order=order, mode="constant",
+                                       cval=cval)
+
+    if order > 1:  # one call: the spline prefilter of the whole field is done once
+        return ndimage.map_coordinates(field_zyx, (points_grid_mm[:, ::-1] / spacing).T,
+                                       order=order, mode="constant", cval=cval)
+    starts = range(0, len(points_grid_mm), SAMPLE_CHUNK)
+    if len(starts) <= 1:
+        return sample(0)
+    return np.concatenate(thread_map(sample, starts, cpu_threads(SAMPLE_THREADS)))
 
 
 def safe_update(old: np.ndarray, new: np.ndarray, faces: np.ndarray, rounds: int = BACKOFF_ROUNDS,

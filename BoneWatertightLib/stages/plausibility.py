@@ -209,7 +209,9 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     # a block inside), and the outer layer of a coarse label that overhangs the bone's edge -
     # outside the bone, rightly outside the surface - counted as missing bone (15-16 % of a
     # 3 mm acetabular shell on 2.5 mm slices, every such block 0.26-1.2 mm outside the truth).
-    depth = distance_inside(np.pad(label, 1))[1:-1, 1:-1, 1:-1] * spacing - 0.5 * spacing
+    depth = distance_inside(np.pad(label, 1))[1:-1, 1:-1, 1:-1]
+    depth *= spacing  # in place: two fewer float volumes at the run's peak of memory
+    depth -= 0.5 * spacing
     deep_enough = depth > 0.5 * coarseness
     core_deep = depth > 0.5 * coarseness + MISSING_WARN_DEPTH_MM
     del depth

@@ -14,8 +14,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from ..mesh.operators import (laplacian, ring_mean, safe_update, sample_field, solve_spd,
-                              vertex_normals)
+from ..mesh.operators import (SAMPLE_CHUNK, SAMPLE_THREADS, laplacian, ring_mean, safe_update,
+                              sample_field, solve_spd, vertex_normals)
+from ..threads import cpu_threads, thread_map
 
 # Largest move along the normal (mm), of the whole refinement (its passes together): beyond it
 # an edge is no sub-voxel correction but the receding edge of a thin rim or process tip.
@@ -88,9 +89,18 @@ def sample_profiles(vertices, faces, ct_smooth, spacing):
     peak, valley, inner): inner is the lowest value within SLAB_INNER_MM inside the peak."""
     n = vertex_normals(vertices, faces)
     t = np.arange(PROFILE_RANGE_MM[0], PROFILE_RANGE_MM[1] + 1e-9, PROFILE_STEP_MM)
-    pts = vertices[:, None, :] + t[None, :, None] * n[:, None, :]
-    prof = sample_field(ct_smooth, pts.reshape(-1, 3), spacing, order=1,
-                        cval=OUTSIDE_HU).reshape(len(vertices), len(t))
+    # The sample points of a few thousand vertices at a time: all at once they took 64 MB
+    # (43 700 vertices x 61 samples x 3 coordinates) at the run's peak of memory.
+    rows = max(1, SAMPLE_CHUNK // len(t))
+
+    def values(start):
+        part = slice(start, start + rows)
+        pts = vertices[part, None, :] + t[None, :, None] * n[part, None, :]
+        return sample_field(ct_smooth, pts.reshape(-1, 3), spacing, order=1,
+                            cval=OUTSIDE_HU).reshape(-1, len(t))
+
+    prof = np.concatenate(thread_map(values, range(0, max(len(vertices), 1), rows),
+                                     cpu_threads(SAMPLE_THREADS)))
     i_peak = np.argmax(prof[:, :int(np.count_nonzero(t <= PEAK_REACH_MM))], axis=1)
     peak = prof[np.arange(len(prof)), i_peak]
     valley, inner = _valley_and_inner(t, prof, i_peak, peak)
