@@ -35,13 +35,13 @@ from scipy.spatial import cKDTree
 from . import __version__
 from .errors import (BoneWatertightError, CancelledError, InputError, PlausibilityError,
                      ReconstructionError, SurfaceCheckError)
+from .memory import release_free_memory
 from .mesh import cap as _cap
 from .mesh import checks as _checks, operators as _operators
 from .mesh.cap import cap_plane
 from .mesh.checks import check_surface
 from .mesh.operators import sample_field
 from .mesh.surface import Surface, enclosed_volume, mean_edge_length, surface_area
-from .memory import release_free_memory
 from .params import Parameters
 from .progress import Progress, ProgressCallback
 from .report import (Counts, DistanceSummary, FallbackLog, JointReport, PairReport,

@@ -228,3 +228,18 @@ def test_free_memory_goes_back_to_the_system():
     assert release_free_memory()
     assert resident_mb() < before - 100.0
     assert keep.sum() == 100_000
+
+
+@pytest.mark.parametrize("f", [2, 3, 7])
+def test_block_majority_is_the_blocks_count(f):
+    from BoneWatertightLib.stages.plausibility import _block_majority
+
+    rng = np.random.default_rng(f)
+    mask = ndimage.gaussian_filter(rng.random((23, 30, 17)), 1.0) > 0.5
+    pad = [(0, (-s) % f) for s in mask.shape]
+    m = np.pad(mask, pad).astype(np.int64)
+    z, y, x = (s // f for s in m.shape)
+    count = m.reshape(z, f, y, f, x, f).sum(axis=(1, 3, 5))
+    out = _block_majority(mask, f)
+    assert out.shape == count.shape and 0 < out.sum() < out.size
+    assert np.array_equal(out, 2 * count >= f ** 3)

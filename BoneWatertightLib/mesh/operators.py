@@ -128,16 +128,15 @@ def sample_field(field_zyx: np.ndarray, points_grid_mm: np.ndarray, spacing: flo
     (k,) array of the field's dtype
     """
     points_grid_mm = np.asarray(points_grid_mm)
+    # In chunks for order 1 only: a higher order prefilters the whole field at every call.
+    chunk = SAMPLE_CHUNK if order <= 1 else max(len(points_grid_mm), 1)
 
     def sample(start):
-        coords = (points_grid_mm[start:start + SAMPLE_CHUNK, ::-1] / spacing).T
+        coords = (points_grid_mm[start:start + chunk, ::-1] / spacing).T
         return ndimage.map_coordinates(field_zyx, coords, order=order, mode="constant",
                                        cval=cval)
 
-    if order > 1:  # one call: the spline prefilter of the whole field is done once
-        return ndimage.map_coordinates(field_zyx, (points_grid_mm[:, ::-1] / spacing).T,
-                                       order=order, mode="constant", cval=cval)
-    starts = range(0, len(points_grid_mm), SAMPLE_CHUNK)
+    starts = range(0, len(points_grid_mm), chunk)
     if len(starts) <= 1:
         return sample(0)
     return np.concatenate(thread_map(sample, starts, cpu_threads(SAMPLE_THREADS)))

@@ -286,9 +286,15 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
 def _block_majority(mask: np.ndarray, f: int) -> np.ndarray:
     """``mask`` on blocks of f^3 voxels: a block is set when at least half of it is."""
     pad = [(0, (-s) % f) for s in mask.shape]
-    m = np.pad(mask, pad).astype(np.uint16)
-    z, y, x = (s // f for s in m.shape)
-    return m.reshape(z, f, y, f, x, f).sum(axis=(1, 3, 5)) * 2 >= f ** 3
+    m = np.pad(np.asarray(mask, bool), pad).view(np.uint8)
+    # The sum of the f^3 strided sub-grids: 10x faster than summing the blocks' axes of a
+    # (z, f, y, f, x, f) view (5 against 59 ms on a 7 M-voxel box, f = 2).
+    count = np.zeros(tuple(s // f for s in m.shape), np.uint8 if f ** 3 <= 255 else np.uint16)
+    for i in range(f):
+        for j in range(f):
+            for k in range(f):
+                count += m[i::f, j::f, k::f]
+    return count.astype(np.uint32) * 2 >= f ** 3
 
 
 def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str) -> Plausibility:
