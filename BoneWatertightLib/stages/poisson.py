@@ -43,6 +43,9 @@ SINC_PASS_BAND = 0.1
 # contours per surface; plugs of at least FILL_MIN_VOXELS grid voxels.
 FILL_MAX_TRIALS = 8
 FILL_MIN_VOXELS = 8
+# A plate of the segment (for the plugs' normals): its smoothed indicator's Hessian has an
+# eigenvalue at least PLUG_SHEETNESS times as negative as the next one (across the plate).
+PLUG_SHEETNESS = 2.0
 # ... and at most NARROW_MAX_TRIALS contours for the tunnels narrower than the CT resolves.
 NARROW_MAX_TRIALS = 16
 # Fewest triangles of a remeshed M0 (a tetrahedron); fewer: the surface was lost.
@@ -483,15 +486,44 @@ def _plugs(field_zyx: np.ndarray, label: np.ndarray, h: float, reach_mm: float):
     idx = np.argwhere(cand)
     if not len(idx):
         return np.zeros(label.shape, np.int32), np.zeros(1, np.int64)
-    sm = ndimage.gaussian_filter(label.astype(np.float32), sigma=max(0.5 * reach_mm / h, 1.0))
+    sigma = max(0.5 * reach_mm / h, 1.0)
+    sm = ndimage.gaussian_filter(label.astype(np.float32), sigma=sigma)
     # The segment's outward normal (z, y, x): down its smoothed indicator's gradient.
     n = -np.stack([ndimage.sobel(sm, axis=a)[tuple(idx.T)] for a in range(3)], axis=1)
     length = np.linalg.norm(n, axis=1)
-    free = length > 1e-6
-    n[free] /= length[free, None]
-    for side in (-1.0, 1.0):
-        q = idx + side * (reach_mm / h) * n
-        free &= ndimage.map_coordinates(field_zyx, q.T, order=1, mode="constant", cval=0.0) < 0.5
+    ok = length > 1e-6
+    n[ok] /= length[ok, None]
+
+    def free_along(normals, which):
+        out = which.copy()
+        for side in (-1.0, 1.0):
+            q = idx[which] + side * (reach_mm / h) * normals[which]
+            out[which] &= ndimage.map_coordinates(field_zyx, q.T, order=1, mode="constant",
+                                                  cval=0.0) < 0.5
+        return out
+
+    free = free_along(n, ok)
+    rest = ~free
+    if rest.any():
+        # In a plate of the segment about as thin as that smoothing, the gradient vanishes
+        # mid-plate and points along the plate (to its rim, where a hole narrower than the
+        # reach meets the surface): the plate's normal is then the Hessian's eigenvector of
+        # the most negative eigenvalue (the direction across a bright sheet).
+        at = tuple(idx[rest].T)
+        hess = np.empty((int(rest.sum()), 3, 3))
+        for a in range(3):
+            for b in range(a, 3):
+                order = [0, 0, 0]
+                order[a] += 1
+                order[b] += 1
+                hess[:, a, b] = hess[:, b, a] = ndimage.gaussian_filter(
+                    label.astype(np.float32), sigma=sigma, order=order)[at]
+        values, vectors = np.linalg.eigh(hess)
+        sheet = np.zeros(len(idx), bool)
+        sheet[rest] = values[:, 0] < PLUG_SHEETNESS * np.minimum(values[:, 1], 0.0) - 1e-6
+        across = np.zeros_like(n)
+        across[rest] = vectors[:, :, 0]
+        free |= free_along(across, sheet)
     plug = np.zeros(label.shape, bool)
     plug[tuple(idx[free].T)] = True
     pieces, count = ndimage.label(plug, structure=np.ones((3, 3, 3), bool))
