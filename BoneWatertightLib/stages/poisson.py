@@ -43,9 +43,11 @@ SINC_PASS_BAND = 0.1
 # contours per surface; plugs of at least FILL_MIN_VOXELS grid voxels.
 FILL_MAX_TRIALS = 8
 FILL_MIN_VOXELS = 8
-# A plate of the segment (for the plugs' normals): its smoothed indicator's Hessian has an
-# eigenvalue at least PLUG_SHEETNESS times as negative as the next one (across the plate).
+# A plate of the segment (for the plugs' normals, see _ridge_normals): its smoothed indicator's
+# Hessian has a negative eigenvalue PLUG_SHEETNESS times the others in magnitude and below
+# -PLUG_MIN_CURVATURE / sigma^2 (a plate one voxel thick: about -0.4 / sigma^2 at sigma = 1).
 PLUG_SHEETNESS = 2.0
+PLUG_MIN_CURVATURE = 0.05
 # ... and at most NARROW_MAX_TRIALS contours for the tunnels narrower than the CT resolves.
 NARROW_MAX_TRIALS = 16
 # Fewest triangles of a remeshed M0 (a tetrahedron); fewer: the surface was lost.
@@ -506,30 +508,55 @@ def _plugs(field_zyx: np.ndarray, label: np.ndarray, h: float, reach_mm: float):
     rest = ~free
     if rest.any():
         # In a plate of the segment about as thin as that smoothing, the gradient vanishes
-        # mid-plate and points along the plate (to its rim, where a hole narrower than the
-        # reach meets the surface): the plate's normal is then the Hessian's eigenvector of
-        # the most negative eigenvalue (the direction across a bright sheet).
-        at = tuple(idx[rest].T)
-        hess = np.empty((int(rest.sum()), 3, 3))
-        for a in range(3):
-            for b in range(a, 3):
-                order = [0, 0, 0]
-                order[a] += 1
-                order[b] += 1
-                hess[:, a, b] = hess[:, b, a] = ndimage.gaussian_filter(
-                    label.astype(np.float32), sigma=sigma, order=order)[at]
-        values, vectors = np.linalg.eigh(hess)
-        sheet = np.zeros(len(idx), bool)
-        sheet[rest] = values[:, 0] < PLUG_SHEETNESS * np.minimum(values[:, 1], 0.0) - 1e-6
-        across = np.zeros_like(n)
-        across[rest] = vectors[:, :, 0]
-        free |= free_along(across, sheet)
+        # mid-plate, or points along the plate (to its rim, where a hole narrower than the
+        # reach meets the surface): there the plate's normal is the direction of the
+        # smoothed indicator's strongest negative curvature, where it is a ridge across it.
+        across, ridge = _ridge_normals(label, sigma, idx, rest)
+        free |= free_along(across, ridge)
     plug = np.zeros(label.shape, bool)
     plug[tuple(idx[free].T)] = True
     pieces, count = ndimage.label(plug, structure=np.ones((3, 3, 3), bool))
     size = np.bincount(pieces.ravel(), minlength=count + 1)
     size[0] = 0
     return pieces, size
+
+
+def _ridge_normals(label: np.ndarray, sigma: float, idx: np.ndarray,
+                   which: np.ndarray) -> tuple:
+    """(normals (k, 3), where they hold (k,) bool) of the plates of a (z, y, x) bool segment at
+    its voxels ``idx[which]`` (``idx``: (k, 3) indices; ``which``: (k,) bool); on its
+    indicator smoothed by ``sigma`` voxels, the eigenvector of the
+    Hessian's most negative eigenvalue where that eigenvalue is at least PLUG_SHEETNESS times
+    as large as the others in magnitude (a sheet; an edge of a thick part curves as much the
+    other way), stronger than PLUG_MIN_CURVATURE / sigma^2 (not a flat face), and where the
+    indicator is nearly level, |gradient| <= ``sigma`` x |curvature| (a ridge: its maximum
+    across lies within ``sigma``; a plate's middle, not the edge or margin
+    of a thick part, whose profile across only falls)."""
+    at = tuple(idx[which].T)
+    f = label.astype(np.float32)
+
+    def derivative(order):
+        return ndimage.gaussian_filter(f, sigma=sigma, order=order)[at].astype(np.float64)
+
+    hess = np.empty((len(at[0]), 3, 3))
+    grad = np.empty((len(at[0]), 3))
+    for a in range(3):
+        grad[:, a] = derivative([int(i == a) for i in range(3)])
+        for b in range(a, 3):
+            hess[:, a, b] = hess[:, b, a] = derivative([int(i == a) + int(i == b)
+                                                       for i in range(3)])
+    values, vectors = np.linalg.eigh(hess)
+    across = vectors[:, :, 0]
+    curv = values[:, 0]
+    ridge = ((-curv >= PLUG_SHEETNESS * np.abs(values[:, 1:]).max(axis=1))
+             & (curv < -PLUG_MIN_CURVATURE / sigma ** 2)
+             & (np.linalg.norm(grad, axis=1) <= -curv * sigma))
+    out = np.zeros((len(idx), 3))
+    held = np.zeros(len(idx), bool)
+    rows = np.flatnonzero(which)[ridge]
+    out[rows] = across[ridge]
+    held[rows] = True
+    return out, held
 
 
 def euler_number(mask: np.ndarray, connectivity: int = 26) -> int:
@@ -644,13 +671,13 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
             return True
         return False
 
-    def plug_holes(source, last_trial, goal):
-        """Plugs of ``source`` (z, y, x bool) tried all at once, then one by one, largest
-        first, up to contour number ``last_trial`` or genus ``goal``; returns how many were
-        kept."""
+    def plug_holes(source, last_trial, goal, least_together=FILL_MIN_VOXELS):
+        """Plugs of ``source`` (z, y, x bool) of at least ``least_together`` voxels tried all
+        at once, then those of at least FILL_MIN_VOXELS one by one, largest first, up to
+        contour number ``last_trial`` or genus ``goal``; returns how many were kept."""
         kept = 0
         pieces, size = _plugs(field_zyx, source, h, reach)
-        big = np.flatnonzero(size >= FILL_MIN_VOXELS)
+        big = np.flatnonzero(size >= least_together)
         if len(big) > 1:
             every = ndimage.binary_dilation(np.isin(pieces, big), structure=np.ones((3, 3, 3), bool),
                                             iterations=2) & source
@@ -675,8 +702,12 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         fusion.info["plugs"] += plug_holes(label, FILL_MAX_TRIALS, fusion.genus)
     from_label = filled.copy()
     if genus > 0 and fusion.bone is not None:
+        # Every plug of the bone together, however small: on the coarse grid of a large bone
+        # (1.3 mm for a hip bone) a hole in a plate a voxel thick is plugged by a few voxels,
+        # and thresholded bone is the CT's evidence, not a segment's noise.
         fusion.info["bone_plugs"] = plug_holes(
-            _label_on(fusion, field_zyx.shape, lo, h, fusion.bone), trials + FILL_MAX_TRIALS, 0)
+            _label_on(fusion, field_zyx.shape, lo, h, fusion.bone), trials + FILL_MAX_TRIALS, 0,
+            least_together=1)
         fusion.info["bone_fill_mm3"] = float((filled & ~from_label).sum() * h ** 3)
     from_ct = filled.copy()
     if fusion.close_mm and genus > fusion.genus:
