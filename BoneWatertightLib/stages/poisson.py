@@ -479,11 +479,14 @@ def _carve(field_zyx: np.ndarray, lo, h: float, fusion: Fusion) -> np.ndarray:
     return out
 
 
-def _plugs(field_zyx: np.ndarray, label: np.ndarray, h: float, reach_mm: float):
+def _plugs(field_zyx: np.ndarray, label: np.ndarray, h: float, reach_mm: float,
+           ridges: bool = False):
     """Pieces of the segment outside the occupancy (field >= 0.5) with no occupancy on
     either side along the segment's normal within ``reach_mm``: plugs of holes in a thin plate
-    (the segment's margin beside the surface has the surface on its inner side). Returns the
-    labelled pieces (z, y, x) and their sizes (voxels, index 0 unused)."""
+    (the segment's margin beside the surface has the surface on its inner side). With
+    ``ridges``, where the gradient gives no such normal, the normal of a plate thinner than the
+    smoothing (:func:`_ridge_normals`). Returns the labelled pieces (z, y, x) and their sizes
+    (voxels, index 0 unused)."""
     cand = label & (field_zyx < 0.5)
     idx = np.argwhere(cand)
     if not len(idx):
@@ -506,7 +509,7 @@ def _plugs(field_zyx: np.ndarray, label: np.ndarray, h: float, reach_mm: float):
 
     free = free_along(n, ok)
     rest = ~free
-    if rest.any():
+    if ridges and rest.any():
         # In a plate of the segment about as thin as that smoothing, the gradient vanishes
         # mid-plate, or points along the plate (to its rim, where a hole narrower than the
         # reach meets the surface): there the plate's normal is the direction of the
@@ -671,12 +674,15 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
             return True
         return False
 
-    def plug_holes(source, last_trial, goal, least_together=FILL_MIN_VOXELS):
-        """Plugs of ``source`` (z, y, x bool) of at least ``least_together`` voxels tried all
-        at once, then those of at least FILL_MIN_VOXELS one by one, largest first, up to
-        contour number ``last_trial`` or genus ``goal``; returns how many were kept."""
+    def plug_holes(source, last_trial, goal, thin=False):
+        """Plugs of ``source`` (z, y, x bool) tried all at once, then one by one, largest
+        first, up to contour number ``last_trial`` or genus ``goal``; returns how many were
+        kept. Plugs of at least FILL_MIN_VOXELS voxels; with ``thin``, also those of plates
+        thinner than the normals' smoothing (:func:`_plugs`' ``ridges``), and all of them,
+        however small, in the first trial."""
         kept = 0
-        pieces, size = _plugs(field_zyx, source, h, reach)
+        pieces, size = _plugs(field_zyx, source, h, reach, ridges=thin)
+        least_together = 1 if thin else FILL_MIN_VOXELS
         big = np.flatnonzero(size >= least_together)
         if len(big) > 1:
             every = ndimage.binary_dilation(np.isin(pieces, big), structure=np.ones((3, 3, 3), bool),
@@ -702,12 +708,14 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         fusion.info["plugs"] += plug_holes(label, FILL_MAX_TRIALS, fusion.genus)
     from_label = filled.copy()
     if genus > 0 and fusion.bone is not None:
-        # Every plug of the bone together, however small: on the coarse grid of a large bone
-        # (1.3 mm for a hip bone) a hole in a plate a voxel thick is plugged by a few voxels,
-        # and thresholded bone is the CT's evidence, not a segment's noise.
+        # Against tunnels the segment does not have, the bone's plates however thin, and every
+        # plug of them together however small: on the coarse grid of a large bone (1.3 mm for a
+        # hip bone) a hole in a plate a voxel thick is plugged by a few voxels. Thresholded
+        # bone is the CT's evidence; a segment's thin parts and crumbs are not (its plugs stay
+        # as they were).
         fusion.info["bone_plugs"] = plug_holes(
             _label_on(fusion, field_zyx.shape, lo, h, fusion.bone), trials + FILL_MAX_TRIALS, 0,
-            least_together=1)
+            thin=genus > fusion.genus)
         fusion.info["bone_fill_mm3"] = float((filled & ~from_label).sum() * h ** 3)
     from_ct = filled.copy()
     if fusion.close_mm and genus > fusion.genus:
