@@ -643,12 +643,16 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
        tunnel narrower than the CT resolves, where the segment at its own resolution has bone
        (thin necks of a vertebra's arch on 3 mm slices, pierced where they are a voxel thin).
        At most NARROW_MAX_TRIALS contours.
+    5. While tunnels the segment does not have remain: plugs from ``fusion.bone`` again, now also
+       of its plates thinner than the normals' smoothing (:func:`_plugs`' ``ridges``), all of
+       them however small in the first trial (``thin_plate_plugs``).
     At most FILL_MAX_TRIALS contours per source; what was done is recorded in
     ``fusion.info`` (``narrow_plugs``, ``narrow_fill_mm3``, ``narrow_radius_mm``)."""
     genus = surface_genus(out)
     fusion.info.update(genus_before=int(genus), segment_genus=int(fusion.genus),
                        label_fill_voxels=0, label_fill_mm3=0.0, plugs=0, fill_trials=0,
-                       bone_plugs=0, bone_fill_mm3=0.0, narrow_plugs=0, narrow_fill_mm3=0.0)
+                       bone_plugs=0, bone_fill_mm3=0.0, narrow_plugs=0, narrow_fill_mm3=0.0,
+                       thin_plate_plugs=0)
     if genus <= fusion.genus and (fusion.bone is None or genus == 0):
         fusion.info["genus_after"] = int(genus)
         return out
@@ -707,15 +711,10 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
     if genus > fusion.genus:
         fusion.info["plugs"] += plug_holes(label, FILL_MAX_TRIALS, fusion.genus)
     from_label = filled.copy()
+    bone = None
     if genus > 0 and fusion.bone is not None:
-        # Against tunnels the segment does not have, the bone's plates however thin, and every
-        # plug of them together however small: on the coarse grid of a large bone (1.3 mm for a
-        # hip bone) a hole in a plate a voxel thick is plugged by a few voxels. Thresholded
-        # bone is the CT's evidence; a segment's thin parts and crumbs are not (its plugs stay
-        # as they were).
-        fusion.info["bone_plugs"] = plug_holes(
-            _label_on(fusion, field_zyx.shape, lo, h, fusion.bone), trials + FILL_MAX_TRIALS, 0,
-            thin=genus > fusion.genus)
+        bone = _label_on(fusion, field_zyx.shape, lo, h, fusion.bone)
+        fusion.info["bone_plugs"] = plug_holes(bone, trials + FILL_MAX_TRIALS, 0)
         fusion.info["bone_fill_mm3"] = float((filled & ~from_label).sum() * h ** 3)
     from_ct = filled.copy()
     if fusion.close_mm and genus > fusion.genus:
@@ -736,6 +735,16 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
                     fusion.info["narrow_radius_mm"] = float(radius)
     narrow = filled & ~from_ct
     fusion.info["narrow_fill_mm3"] = float(narrow.sum() * h ** 3)
+    if bone is not None and genus > fusion.genus:
+        # Last, against tunnels the segment does not have: the bone's plates however thin,
+        # every plug of them together however small. On the coarse grid of a large bone (1.3
+        # mm for a hip bone) a hole in a plate a voxel thick is plugged by a few voxels.
+        # Thresholded bone is the CT's evidence; a segment's thin parts and crumbs are not
+        # (its plugs stay as they were).
+        before = filled.copy()
+        fusion.info["thin_plate_plugs"] = plug_holes(bone, trials + FILL_MAX_TRIALS, 0, thin=True)
+        fusion.info["bone_plugs"] += fusion.info["thin_plate_plugs"]
+        fusion.info["bone_fill_mm3"] += float((filled & ~before).sum() * h ** 3)
     if filled.any():
         out = contour(field_zyx, lo, h, 0.5, smooth_iterations)
     if from_label.any():
