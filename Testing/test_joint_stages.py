@@ -1135,3 +1135,32 @@ def test_plugs_of_a_hole_in_a_plate_thinner_than_the_smoothing(step):
     margin_field = ndimage.gaussian_filter(inner.astype(np.float32), 0.8)
     _, margin_size = _plugs(margin_field, block, 1.0, 3.0, ridges=True)
     assert margin_size.max() < FILL_MIN_VOXELS
+
+
+def test_m0_tunnels_in_a_plate_a_voxel_thick_are_plugged_from_the_bone_last():
+    """A hole in a plate of thresholded bone one grid step thick that the segment (lace there,
+    its genus 0 at its own resolution) cannot plug, too wide for the narrow plugs: the last
+    step plugs it from the bone's thin plates (``thin_plate_plugs``); a segment that has the
+    tunnel keeps it."""
+    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, contour, surface_genus
+
+    z, y, x = np.indices((21, 41, 41)).astype(float)
+    square = (np.abs(y - 20) < 15) & (np.abs(x - 20) < 15)
+    bone = (z == 10) & square
+    hole = np.hypot(x - 20, y - 20) < 3.0
+    occ = ndimage.binary_dilation(bone) & ~ndimage.binary_dilation(hole)
+    field = ndimage.gaussian_filter(occ.astype(np.float32), 0.8)
+    lo = np.zeros(3)
+    m0 = contour(field, lo, 1.0, 0.5, 0, relax=False)
+    assert surface_genus(m0) == 1
+    for segment_genus in (0, 1):
+        fusion = Fusion(label=occ & ~hole, label_origin=np.zeros(3), label_spacing=1.0,
+                        genus=segment_genus, close_mm=(3.0,), bone=bone)
+        out = _fill_tunnels(m0, field.copy(), lo, 1.0, fusion, 0)
+        info = fusion.info
+        assert info["narrow_plugs"] == 0
+        if segment_genus == 0:
+            assert surface_genus(out) == 0 and info["genus_after"] == 0
+            assert info["thin_plate_plugs"] >= 1 and info["bone_fill_mm3"] > 0
+        else:
+            assert surface_genus(out) == 1 and info["thin_plate_plugs"] == 0

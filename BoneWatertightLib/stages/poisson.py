@@ -45,7 +45,7 @@ FILL_MAX_TRIALS = 8
 FILL_MIN_VOXELS = 8
 # A plate of the segment (for the plugs' normals, see _ridge_normals): its smoothed indicator's
 # Hessian has a negative eigenvalue PLUG_SHEETNESS times the others in magnitude and below
-# -PLUG_MIN_CURVATURE / sigma^2 (a plate one voxel thick: about -0.4 / sigma^2 at sigma = 1).
+# -PLUG_MIN_CURVATURE / sigma^2 (a plate one voxel thick: about -0.4 / sigma^3).
 PLUG_SHEETNESS = 2.0
 PLUG_MIN_CURVATURE = 0.05
 # ... and at most NARROW_MAX_TRIALS contours for the tunnels narrower than the CT resolves.
@@ -742,7 +742,8 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         # Thresholded bone is the CT's evidence; a segment's thin parts and crumbs are not
         # (its plugs stay as they were).
         before = filled.copy()
-        fusion.info["thin_plate_plugs"] = plug_holes(bone, trials + FILL_MAX_TRIALS, 0, thin=True)
+        fusion.info["thin_plate_plugs"] = plug_holes(bone, trials + FILL_MAX_TRIALS,
+                                                     fusion.genus, thin=True)
         fusion.info["bone_plugs"] += fusion.info["thin_plate_plugs"]
         fusion.info["bone_fill_mm3"] += float((filled & ~before).sum() * h ** 3)
     if filled.any():
