@@ -899,9 +899,17 @@ def deform(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
     bone.vertices = verts
 
 
+def _release_between_steps(ws: Workspace) -> None:
+    """Free heap back to the system inside one bone's work - for a run of one bone only: with
+    several, on threads, it returns what the other bones are about to reuse, and their pages
+    come back zeroed (L1-L5: 41.9 -> 44.2-44.6 s)."""
+    if len(ws.targets) == 1:
+        release_free_memory()
+
+
 def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress) -> None:
     """Our sub-voxel edge refinement (stages.refine) and its support on the free surface."""
-    release_free_memory()  # the deformation's freed arrays: the profiles come on top
+    _release_between_steps(ws)  # the deformation's freed arrays: the profiles come on top
     params, d = run.params, ws.d
     before = bone.vertices
     plates = bone.plates
@@ -1094,7 +1102,7 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
         checks = check_surface(phys, faces)
     _raise_failed_checks(checks, phys, faces, planes, name)
     progress(0.6, f"{name}: plausibility")
-    release_free_memory()  # its distance maps come on top of what the checks freed
+    _release_between_steps(ws)  # its distance maps come on top of what the checks freed
     with timed(bone.times, "plausibility"):
         plaus, box, segment = plausibility_of(run, ws, bone, verts, faces, phys, planes)
     warnings = _plausibility_warnings(run, plaus)
