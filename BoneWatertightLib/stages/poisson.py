@@ -492,7 +492,8 @@ def _plugs(field_zyx: np.ndarray, label: np.ndarray, h: float, reach_mm: float,
     if not len(idx):
         return np.zeros(label.shape, np.int32), np.zeros(1, np.int64)
     sigma = max(0.5 * reach_mm / h, 1.0)
-    sm = ndimage.gaussian_filter(label.astype(np.float32), sigma=sigma)
+    indicator = label.astype(np.float32)
+    sm = ndimage.gaussian_filter(indicator, sigma=sigma)
     # The segment's outward normal (z, y, x): down its smoothed indicator's gradient.
     n = -np.stack([ndimage.sobel(sm, axis=a)[tuple(idx.T)] for a in range(3)], axis=1)
     length = np.linalg.norm(n, axis=1)
@@ -514,7 +515,7 @@ def _plugs(field_zyx: np.ndarray, label: np.ndarray, h: float, reach_mm: float,
         # mid-plate, or points along the plate (to its rim, where a hole narrower than the
         # reach meets the surface): there the plate's normal is the direction of the
         # smoothed indicator's strongest negative curvature, where it is a ridge across it.
-        across, ridge = _ridge_normals(label, sigma, idx, rest)
+        across, ridge = _ridge_normals(indicator, sigma, idx, rest)
         free |= free_along(across, ridge)
     plug = np.zeros(label.shape, bool)
     plug[tuple(idx[free].T)] = True
@@ -524,9 +525,10 @@ def _plugs(field_zyx: np.ndarray, label: np.ndarray, h: float, reach_mm: float,
     return pieces, size
 
 
-def _ridge_normals(label: np.ndarray, sigma: float, idx: np.ndarray,
+def _ridge_normals(indicator: np.ndarray, sigma: float, idx: np.ndarray,
                    which: np.ndarray) -> tuple:
-    """(normals (k, 3), where they hold (k,) bool) of the plates of a (z, y, x) bool segment at
+    """(normals (k, 3), where they hold (k,) bool) of the plates of a segment (``indicator``:
+    (z, y, x) float32, 1 inside) at
     its voxels ``idx[which]`` (``idx``: (k, 3) indices; ``which``: (k,) bool); on its
     indicator smoothed by ``sigma`` voxels, the eigenvector of the
     Hessian's most negative eigenvalue where that eigenvalue is at least PLUG_SHEETNESS times
@@ -536,10 +538,9 @@ def _ridge_normals(label: np.ndarray, sigma: float, idx: np.ndarray,
     across lies within ``sigma``; a plate's middle, not the edge or margin
     of a thick part, whose profile across only falls)."""
     at = tuple(idx[which].T)
-    f = label.astype(np.float32)
 
     def derivative(order):
-        return ndimage.gaussian_filter(f, sigma=sigma, order=order)[at].astype(np.float64)
+        return ndimage.gaussian_filter(indicator, sigma=sigma, order=order)[at].astype(np.float64)
 
     hess = np.empty((len(at[0]), 3, 3))
     grad = np.empty((len(at[0]), 3))
