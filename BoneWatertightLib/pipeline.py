@@ -270,6 +270,7 @@ class Workspace:
     fixed: dict = field(default_factory=dict)
     territories: dict = field(default_factory=dict)
     ct_smooth: Optional[np.ndarray] = None
+    ct_smooth_d: float = 0.0                 # its step (mm): prepare.refine_spacing
     # The full cortical contrast of the bones reconstructed together (HU; NaN: none), and
     # the bone it came from (refine.full_contrast).
     shared_reference: float = float("nan")
@@ -826,9 +827,19 @@ def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
     params = run.params
     sub = run.stage("deform")
     if params.refine_edges:
-        ws.ct_smooth = ndimage.gaussian_filter(
-            ws.prep.ct, sigma=max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / ws.d),
-            mode="nearest")
+        ws.ct_smooth_d = ws.prep.refine_spacing or ws.d
+        sigma = max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / ws.ct_smooth_d)
+        if ws.ct_smooth_d < ws.d:
+            # A finer grid of its own, made from the crop on the CT's grid once the working
+            # grid's CT volumes are gone, and smoothed in place.
+            ws.ct_f = ws.prep.ct = None
+            release_free_memory()
+            field = _prepare.refine_ct(ws.prep)
+            ws.ct_smooth = ndimage.gaussian_filter(field, sigma=sigma, mode="nearest",
+                                                   output=field)
+            del field
+        else:
+            ws.ct_smooth = ndimage.gaussian_filter(ws.prep.ct, sigma=sigma, mode="nearest")
     # No later stage reads the resampled or the filtered CT, or the crop on the CT's own grid.
     ws.ct_f = ws.prep.ct = ws.prep.native = None
 
@@ -843,9 +854,9 @@ def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
                 # The contrast this bone's cortex shows, for the run's shared reference.
                 # (Its profiles are the refinement's first ones: kept for it.)
                 bone.profiles = _refine.sample_profiles(bone.vertices, bone.faces,
-                                                        ws.ct_smooth, ws.d)
+                                                        ws.ct_smooth, ws.ct_smooth_d)
                 bone.own_reference = _refine.contrast_reference(
-                    bone.vertices, bone.faces, ws.ct_smooth, ws.d, ws.ht,
+                    bone.vertices, bone.faces, ws.ct_smooth, ws.ct_smooth_d, ws.ht,
                     profiles=bone.profiles, peak_max=params.theta_max)
         if params.refine_edges and not several:
             with timed(bone.times, "refine"):
@@ -915,7 +926,7 @@ def refine(run: _Run, ws: Workspace, bone: BoneWork, allowed, progress: Progress
     plates = bone.plates
     levels: dict = {}
     verts, shift, frac, found = refine_to_edges(
-        before, bone.faces, ws.ct_smooth, d, ws.ht, edge_level=params.edge_level,
+        before, bone.faces, ws.ct_smooth, ws.ct_smooth_d, ws.ht, edge_level=params.edge_level,
         allowed=allowed, progress=progress, fallbacks=bone.fallbacks,
         plate_targets=plates.targets if plates is not None and plates.n else None,
         shared_reference=ws.shared_reference, info=levels, profiles=bone.profiles)
@@ -1148,7 +1159,8 @@ def evidence_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, flags) -
         mask, lo, h = bone.fusion.fill_mask
         fill = (mask, np.asarray(lo) + origin, h)
     return _evidence.vertex_evidence(
-        verts, faces, flags, ct_smooth=ws.ct_smooth, spacing=ws.d, ht=ws.ht,
+        verts, faces, flags, ct_smooth=ws.ct_smooth, field_spacing=ws.ct_smooth_d,
+        spacing=ws.d, ht=ws.ht,
         soft=ws.thresholds["soft_tissue_hu"],
         min_contrast=_ownership.LABEL_LEVEL_FRACTION * (ws.ht - ws.thresholds["soft_tissue_hu"]),
         edge_level=run.params.edge_level, plates=bone.plates,

@@ -22,6 +22,8 @@ boundary is the competition between two bones. Each vertex gets a class and a co
 
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 
 from ..mesh.operators import sample_field
@@ -50,7 +52,7 @@ def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarray, *,
                     ct_smooth, spacing: float, ht: float, soft: float, min_contrast: float,
-                    edge_level=None, plates=None,
+                    field_spacing: Optional[float] = None, edge_level=None, plates=None,
                     others_distance=None, others_origin=None, fill=None,
                     free_mm: float = 2.0, resolution: float = 0.0,
                     shared_reference=None) -> tuple:
@@ -63,7 +65,8 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
     cap_flags : (m,) uint8 array
         1 on cap faces.
     ct_smooth : (z, y, x) float array or None
-        The refinement's smoothed CT on the working grid (None: no edges are measured).
+        The refinement's smoothed CT (None: no edges are measured), on a grid of step
+        ``field_spacing`` (None: ``spacing``) from the working grid's first voxel.
     spacing, ht : float
         Working voxel size (mm) and HT (HU).
     soft, min_contrast : float
@@ -100,12 +103,13 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
     confidence = np.zeros(n, np.float32)
     normals = None
     if ct_smooth is not None:
-        profiles = sample_profiles(vertices, faces, ct_smooth, spacing)
-        reference = full_contrast(contrast_reference(vertices, faces, ct_smooth, spacing, ht,
+        step = spacing if field_spacing is None else field_spacing
+        profiles = sample_profiles(vertices, faces, ct_smooth, step)
+        reference = full_contrast(contrast_reference(vertices, faces, ct_smooth, step, ht,
                                                      profiles=profiles), shared_reference)
         level = edge_level if edge_level is not None else (
             0.5 if not np.isfinite(reference) else ("slab", reference))
-        normals, t_cross, ok, contrast = edge_crossings(vertices, faces, ct_smooth, spacing,
+        normals, t_cross, ok, contrast = edge_crossings(vertices, faces, ct_smooth, step,
                                                         soft + min_contrast, level, min_contrast,
                                                         profiles=profiles)
         edge = ok & (np.abs(t_cross) <= tolerance)
