@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from scipy import ndimage
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -236,3 +237,61 @@ def test_auto_spacing_is_what_a_run_uses():
     scene = _phantomish_scene()
     res = reconstruct(scene.ct(), scene.label_map(), Parameters(**FAST))
     assert res.report.input["resample_spacing_mm"] == pytest.approx(prepare.AUTO_SPACING_RANGE_MM[0])
+
+
+# ---------------------------------------------------------------------------- refinement grid
+
+def test_refine_spacing_follows_the_ct_and_never_passes_the_working_grid():
+    """The edge refinement's CT: 2/3 of the CT's finest spacing, never coarser than the working
+    grid, coarser when the field would be too big or not fit the memory left."""
+    vertebra = np.array([60.0, 55.0, 45.0])
+    assert prepare.refine_spacing(vertebra, 0.5, (0.6, 0.6, 1.0)) == pytest.approx(0.4)
+    assert prepare.refine_spacing(vertebra, 0.5, (0.9, 0.9, 2.0)) == pytest.approx(0.5)
+    assert prepare.refine_spacing(vertebra, 0.75, (3.0, 3.0, 3.0)) == 0.75  # CT coarser than d
+    assert prepare.refine_spacing(vertebra, 0.5, (0.1, 0.1, 0.1)) == prepare.REFINE_GRID_MIN_MM
+    femur = np.array([113.0, 80.0, 175.0])
+    r = prepare.refine_spacing(femur, 0.59, (0.6, 0.6, 1.0))  # the first step that fits
+    assert 0.4 <= r < 0.59
+    assert prepare.grid_voxels(femur, r) <= prepare.REFINE_GRID_VOXELS
+    assert prepare.grid_voxels(femur, round(r - 0.01, 2)) > prepare.REFINE_GRID_VOXELS or r == 0.4
+    pelvis = np.array([330.0, 219.0, 345.0])  # too big for a field of its own: the working grid
+    assert prepare.refine_spacing(pelvis, 1.0, (0.7, 0.7, 2.5)) == 1.0
+    hip = np.array([200.0, 150.0, 210.0])
+    r = prepare.refine_spacing(hip, 1.0, (0.7, 0.7, 2.5))
+    assert 0.47 < r < 1.0 and prepare.grid_voxels(hip, r) <= prepare.REFINE_GRID_VOXELS
+    tight = prepare.refine_spacing(femur, 0.59, (0.6, 0.6, 1.0), spare_bytes=40e6)
+    assert 0.4 < tight <= 0.59
+    assert prepare.grid_voxels(femur, tight) * prepare.REFINE_BYTES_PER_VOXEL <= 40e6 or tight == 0.59
+
+
+@pytest.mark.parametrize("cut", [False, True])
+def test_refine_ct_is_the_working_grids_interpolation_on_a_finer_grid(cut):
+    """At the nodes the two grids share, the refinement's CT holds the working grid's values:
+    the same B-spline interpolation of the same crop (replicated past the border where the
+    bone is cut), on an oblique CT."""
+    rng = np.random.default_rng(3)
+    shape = (24, 30, 28)
+    arr = (ndimage.gaussian_filter(rng.normal(0.0, 300.0, shape), 1.5) * 5).astype(np.float32)
+    lab = np.zeros(shape, np.uint8)
+    lab[6:18, 8:22, 7:20] = 1
+    if cut:
+        lab[0:18, 8:22, 7:20] = 1  # touches the first slice: capped, the crop is padded
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    ct = sitk.GetImageFromArray(arr)
+    ct.SetSpacing((0.9, 0.9, 1.2))
+    ct.SetOrigin((-20.0, 14.0, 3.5))
+    ct.SetDirection(q.ravel().tolist())
+    labels = sitk.GetImageFromArray(lab)
+    labels.CopyInformation(ct)
+    prep = prepare.prepare_labels(ct, labels, [1], spacing=0.8)
+    assert any(prep.pad[0]) == cut
+    prep.refine_spacing = 0.4
+    fine = prepare.refine_ct(prep)
+    coarse = prep.ct
+    assert fine.dtype == np.float32
+    shared = fine[::2, ::2, ::2]
+    n = tuple(min(a, b) for a, b in zip(shared.shape, coarse.shape))
+    assert abs(fine.shape[0] - 2 * coarse.shape[0]) <= 2
+    assert np.abs(shared[:n[0], :n[1], :n[2]] - coarse[:n[0], :n[1], :n[2]]).max() < 1e-2
+    prep.refine_spacing = prep.grid.spacing
+    assert prepare.refine_ct(prep) is prep.ct
