@@ -270,7 +270,7 @@ class Workspace:
     fixed: dict = field(default_factory=dict)
     territories: dict = field(default_factory=dict)
     ct_smooth: Optional[np.ndarray] = None
-    ct_smooth_d: float = 0.0                 # its step (mm): prepare.refine_spacing
+    ct_smooth_d: object = 0.0                # its step(s) (mm): d, or prepare.refine_spacing
     # The full cortical contrast of the bones reconstructed together (HU; NaN: none), and
     # the bone it came from (refine.full_contrast).
     shared_reference: float = float("nan")
@@ -827,19 +827,23 @@ def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
     params = run.params
     sub = run.stage("deform")
     if params.refine_edges:
-        ws.ct_smooth_d = ws.prep.refine_spacing or ws.d
-        sigma = max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / ws.ct_smooth_d)
-        if ws.ct_smooth_d < ws.d:
+        steps = tuple(ws.prep.refine_spacing) or (ws.d,) * 3
+        if min(steps) < ws.d:
             # A finer grid of its own, made from the crop on the CT's grid once the working
             # grid's CT volumes are gone, and smoothed in place.
             ws.ct_f = ws.prep.ct = None
             release_free_memory()
             field = _prepare.refine_ct(ws.prep)
+            sigma = [max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / st) for st in steps[::-1]]
             ws.ct_smooth = ndimage.gaussian_filter(field, sigma=sigma, mode="nearest",
                                                    output=field)
+            ws.ct_smooth_d = steps
             del field
         else:
-            ws.ct_smooth = ndimage.gaussian_filter(ws.prep.ct, sigma=sigma, mode="nearest")
+            ws.ct_smooth = ndimage.gaussian_filter(
+                ws.prep.ct, sigma=max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / ws.d),
+                mode="nearest")
+            ws.ct_smooth_d = ws.d
     # No later stage reads the resampled or the filtered CT, or the crop on the CT's own grid.
     ws.ct_f = ws.prep.ct = ws.prep.native = None
 

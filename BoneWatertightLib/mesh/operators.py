@@ -116,8 +116,8 @@ def sample_field(field_zyx: np.ndarray, points_grid_mm: np.ndarray, spacing: flo
         Values on an isotropic grid of ``spacing`` mm.
     points_grid_mm : (k, 3) float array
         x-y-z points in grid millimetres (voxel index * spacing).
-    spacing : float
-        Voxel size in mm.
+    spacing : float or (x, y, z) floats
+        Voxel size in mm (or per axis).
     order : int
         Spline order of :func:`scipy.ndimage.map_coordinates` (1 = trilinear).
     cval : float
@@ -128,11 +128,13 @@ def sample_field(field_zyx: np.ndarray, points_grid_mm: np.ndarray, spacing: flo
     (k,) array of the field's dtype
     """
     points_grid_mm = np.asarray(points_grid_mm)
+    if not np.isscalar(spacing):
+        spacing = np.asarray(spacing, dtype=np.float64)
     # In chunks for order 1 only: a higher order prefilters the whole field at every call.
     chunk = SAMPLE_CHUNK if order <= 1 else max(len(points_grid_mm), 1)
 
     def sample(start):
-        coords = (points_grid_mm[start:start + chunk, ::-1] / spacing).T
+        coords = (points_grid_mm[start:start + chunk] / spacing)[:, ::-1].T
         return ndimage.map_coordinates(field_zyx, coords, order=order, mode="constant",
                                        cval=cval)
 

@@ -22,8 +22,6 @@ boundary is the competition between two bones. Each vertex gets a class and a co
 
 from __future__ import annotations
 
-from typing import Optional
-
 import numpy as np
 
 from ..mesh.operators import sample_field
@@ -52,7 +50,7 @@ def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarray, *,
                     ct_smooth, spacing: float, ht: float, soft: float, min_contrast: float,
-                    field_spacing: Optional[float] = None, edge_level=None, plates=None,
+                    field_spacing=None, edge_level=None, plates=None,
                     others_distance=None, others_origin=None, fill=None,
                     free_mm: float = 2.0, resolution: float = 0.0,
                     shared_reference=None) -> tuple:
@@ -66,7 +64,8 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
         1 on cap faces.
     ct_smooth : (z, y, x) float array or None
         The refinement's smoothed CT (None: no edges are measured), on a grid of step
-        ``field_spacing`` (None: ``spacing``) from the working grid's first voxel.
+        ``field_spacing`` (a step or (x, y, z) steps; None: ``spacing``) from the working
+        grid's first voxel.
     spacing, ht : float
         Working voxel size (mm) and HT (HU).
     soft, min_contrast : float

@@ -204,22 +204,25 @@ REFINE_BYTES_PER_VOXEL = 8
 
 
 def refine_spacing(extent_mm: np.ndarray, d: float, ct_spacing,
-                   spare_bytes: Optional[float] = None) -> float:
-    """Step (mm) of the grid the edge refinement samples the CT on (see REFINE_GRID_CT_FRACTION):
-    ``d`` (the working spacing) when the CT is not finer than it; else the finest step, in 0.01 mm
-    steps, from REFINE_GRID_CT_FRACTION x min(``ct_spacing``) up, whose grid over ``extent_mm``
-    (x, y, z) has at most REFINE_GRID_VOXELS voxels and, with ``spare_bytes``, fits them."""
-    r = max(REFINE_GRID_MIN_MM, REFINE_GRID_CT_FRACTION * float(np.min(ct_spacing)))
-    r = float(np.ceil(r * 100.0 - 1e-6) / 100.0)
+                   spare_bytes: Optional[float] = None) -> tuple:
+    """Steps (x, y, z mm) of the grid the edge refinement samples the CT on (see
+    REFINE_GRID_CT_FRACTION): per axis REFINE_GRID_CT_FRACTION x the CT's spacing on it (at
+    least REFINE_GRID_MIN_MM, 0.01 mm steps), never coarser than ``d`` (the working spacing): a
+    thick-slice CT keeps the working grid's step across its slices. The finer axes grow together
+    in 0.01 mm steps while the grid over ``extent_mm`` (x, y, z) passes REFINE_GRID_VOXELS voxels
+    or, with ``spare_bytes``, does not fit them."""
+    steps = [min(float(np.ceil(max(REFINE_GRID_MIN_MM, REFINE_GRID_CT_FRACTION * float(s))
+                               * 100.0 - 1e-6) / 100.0), d) for s in ct_spacing]
+    e = np.asarray(extent_mm, dtype=np.float64)
 
-    def too_big(step):
-        n = grid_voxels(extent_mm, step)
+    def too_big(st):
+        n = float(np.prod(np.ceil(e / np.asarray(st)) + 1))
         return n > REFINE_GRID_VOXELS or (spare_bytes is not None
                                           and n * REFINE_BYTES_PER_VOXEL > spare_bytes)
 
-    while r < d and too_big(r):
-        r = round(r + 0.01, 2)
-    return float(min(r, d))
+    while min(steps) < d and too_big(steps):
+        steps = [min(round(s + 0.01, 2), d) if s < d else s for s in steps]
+    return tuple(float(s) for s in steps)
 
 
 def check_memory(extent_mm: np.ndarray, spacing: float, max_memory_gb: float) -> float:
@@ -278,7 +281,8 @@ class PreparedLabels:
     by the CT's border; ``coarseness``: how coarse the segmentation is (mm: its own voxel size
     or the CT's coarsest spacing, whichever is larger); ``native``: the crop on the CT's own grid
     (ct (z, y, x) float32, label values (z, y, x), CT spacing (x, y, z)) for the threshold
-    estimate; ``refine_spacing``: the step of the edge refinement's CT (:func:`refine_spacing`);
+    estimate; ``refine_spacing``: the steps (x, y, z) of the edge refinement's CT
+    (:func:`refine_spacing`);
     ``pad``: CT voxels replicated past the crop where a target is cut (low, high; x, y, z);
     ``extent_mm``: the working grid's extent (x, y, z)."""
 
@@ -292,7 +296,7 @@ class PreparedLabels:
     native: tuple
     ct_spacing: tuple
     info: dict
-    refine_spacing: float = 0.0
+    refine_spacing: tuple = ()
     pad: tuple = ((0, 0, 0), (0, 0, 0))
     extent_mm: tuple = (0.0, 0.0, 0.0)
 
@@ -369,8 +373,8 @@ def bspline_resample(array: np.ndarray, spacing_zyx, d: float, shape_zyx) -> np.
     ----------
     array : (z, y, x) array
         Samples of spacing ``spacing_zyx`` (mm).
-    d : float
-        Output spacing (mm) on every axis.
+    d : float or (z, y, x) floats
+        Output spacing (mm), on every axis or per axis.
     shape_zyx : tuple of 3 int
         Output shape; voxel i of an axis lies at i * d mm, inside the input
         (i * d <= (n - 1) * spacing).
@@ -381,6 +385,7 @@ def bspline_resample(array: np.ndarray, spacing_zyx, d: float, shape_zyx) -> np.
     """
     from scipy import ndimage, sparse
 
+    step = (float(d),) * 3 if np.isscalar(d) else tuple(float(v) for v in d)
     out = np.asarray(array, dtype=np.float32)
     for axis in range(3):
         out = ndimage.spline_filter1d(out, order=3, axis=axis, mode="mirror", output=np.float32)
@@ -389,7 +394,7 @@ def bspline_resample(array: np.ndarray, spacing_zyx, d: float, shape_zyx) -> np.
     growth = [shape_zyx[a] / max(array.shape[a], 1) for a in range(3)]
     for axis in sorted(range(3), key=lambda a: growth[a]):
         n = array.shape[axis]
-        u = np.arange(shape_zyx[axis]) * (d / float(spacing_zyx[axis]))
+        u = np.arange(shape_zyx[axis]) * (step[axis] / float(spacing_zyx[axis]))
         f = np.floor(u).astype(np.int64)
         w = _cubic_bspline_weights(u - f)
         cols = np.concatenate([_mirror_index(f - 1 + k, n) for k in range(4)])
@@ -547,7 +552,7 @@ def prepare_labels(ct: sitk.Image, labels: sitk.Image, targets, *, spacing: floa
             "crop_index": [int(v) for v in lo_c], "crop_size": [int(v) for v in crop_size],
             "cut_extension_voxels": {"low": pad_lo.tolist(), "high": pad_hi.tolist()},
             "resample_spacing_mm": d, "grid_size": new_size,
-            "refine_spacing_mm": d_refine,
+            "refine_spacing_mm": list(d_refine),
             "spacing_auto": not spacing,
             "spacing_coarsened_for_memory_from_mm": (rule if rule is not None and d > rule
                                                      else None),
@@ -566,20 +571,22 @@ def prepare_labels(ct: sitk.Image, labels: sitk.Image, targets, *, spacing: floa
 
 def refine_ct(prep: PreparedLabels) -> np.ndarray:
     """The CT on the edge refinement's grid: the crop on the CT's grid, replicated past the
-    border where a target is cut (as the working grid's), cubic B-spline interpolated at
-    ``prep.refine_spacing`` from the same first voxel. On the working grid (``refine_spacing``
-    = its spacing) that is ``prep.ct`` itself.
+    border where a target is cut (as the working grid's), cubic B-spline interpolated at the
+    steps ``prep.refine_spacing`` (x, y, z) from the same first voxel. On the working grid
+    (every step its spacing) that is ``prep.ct`` itself.
 
     Returns
     -------
     (z, y, x) float32 array.
     """
-    step = float(prep.refine_spacing)
-    if step >= prep.grid.spacing:
+    steps = tuple(float(s) for s in prep.refine_spacing)
+    if min(steps) >= prep.grid.spacing:
         return prep.ct
     native_ct = prep.native[0]
     lo, hi = prep.pad
     if any(lo) or any(hi):
         native_ct = np.pad(native_ct, [(lo[a], hi[a]) for a in (2, 1, 0)], mode="edge")
-    shape = tuple(int(np.floor(e / step + 1e-9)) + 1 for e in reversed(prep.extent_mm))
-    return bspline_resample(native_ct, tuple(reversed(prep.ct_spacing)), step, shape)
+    shape = tuple(int(np.floor(e / st + 1e-9)) + 1
+                  for e, st in zip(reversed(prep.extent_mm), reversed(steps)))
+    return bspline_resample(native_ct, tuple(reversed(prep.ct_spacing)), tuple(reversed(steps)),
+                            shape)

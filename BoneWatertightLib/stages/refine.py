@@ -404,7 +404,7 @@ def refine_pass(vertices, faces, ct_smooth, spacing, ht, max_shift=MAX_SHIFT_MM,
     height = np.einsum("ij,ij->i", vertices - avg @ vertices, n)
     spike = height - avg @ height
     w[np.abs(shift + spike - ring_mean(avg, shift, w))
-      > max(OUTLIER_MM, OUTLIER_VOXELS * spacing)] = 0.0
+      > max(OUTLIER_MM, OUTLIER_VOXELS * float(np.max(spacing)))] = 0.0
     targets = vertices + shift[:, None] * n
     if allowed is not None:
         # never toward another bone's side of a joint
