@@ -31,6 +31,7 @@ def _oblique_direction(rng) -> np.ndarray:
     ((30, 6, 25), (0.9, 3.0, 0.4), 0.45),     # every axis different
     ((1, 12, 10), (0.8, 0.8, 1.0), 0.5),      # a single slice
     ((16, 16, 16), (0.5, 0.5, 0.5), 1.3),     # a coarser grid than the CT
+    ((18, 40, 36), (0.7, 0.7, 2.5), (0.9, 0.45, 0.3)),  # a step per axis (z, y, x)
 ])
 def test_bspline_resample_matches_simpleitk(shape_zyx, spacing_xyz, d):
     rng = np.random.default_rng(sum(shape_zyx))
@@ -41,9 +42,10 @@ def test_bspline_resample_matches_simpleitk(shape_zyx, spacing_xyz, d):
     img.SetOrigin((12.5, -40.0, 7.25))
     img.SetDirection(_oblique_direction(rng).ravel().tolist())
     extent = [(n - 1) * s for n, s in zip(img.GetSize(), spacing_xyz)]
-    size = [int(np.floor(e / d + 1e-9)) + 1 for e in extent]
+    step_xyz = [d] * 3 if np.isscalar(d) else list(d)[::-1]
+    size = [int(np.floor(e / st + 1e-9)) + 1 for e, st in zip(extent, step_xyz)]
     ref = sitk.Image(size, sitk.sitkFloat32)
-    ref.SetSpacing([d] * 3)
+    ref.SetSpacing(step_xyz)
     ref.SetOrigin(img.GetOrigin())
     ref.SetDirection(img.GetDirection())
     want = sitk.GetArrayFromImage(sitk.Resample(img, ref, sitk.Transform(), sitk.sitkBSpline,
@@ -177,6 +179,11 @@ def test_sampling_in_chunks_on_threads_is_one_interpolation(monkeypatch, threads
     assert np.array_equal(operators.sample_field(field, points, 0.6, cval=-7.0), plain)
     cubic = ndimage.map_coordinates(field, (points[:, ::-1] / 0.6).T, order=3, mode="constant")
     assert np.array_equal(operators.sample_field(field, points, 0.6, order=3), cubic)
+    # a step per axis (x, y, z): x / 0.4, y / 0.5, z / 0.7 mm
+    steps = np.array([0.4, 0.5, 0.7])
+    aniso = ndimage.map_coordinates(field, (points / steps)[:, ::-1].T, order=1,
+                                    mode="constant", cval=-7.0)
+    assert np.array_equal(operators.sample_field(field, points, tuple(steps), cval=-7.0), aniso)
 
     # the refinement's profiles, a few vertices at a time: those of all vertices at once
     from vtkmodules.vtkFiltersSources import vtkSphereSource

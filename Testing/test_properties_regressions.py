@@ -242,26 +242,27 @@ def test_auto_spacing_is_what_a_run_uses():
 # ---------------------------------------------------------------------------- refinement grid
 
 def test_refine_spacing_follows_the_ct_and_never_passes_the_working_grid():
-    """The edge refinement's CT: 2/3 of the CT's finest spacing, never coarser than the working
-    grid, coarser when the field would be too big or not fit the memory left."""
+    """The edge refinement's CT: per axis 2/3 of the CT's spacing on it, never coarser than
+    the working grid, coarser when the field would be too big or not fit the memory left."""
     vertebra = np.array([60.0, 55.0, 45.0])
-    assert prepare.refine_spacing(vertebra, 0.5, (0.6, 0.6, 1.0)) == pytest.approx(0.4)
-    assert prepare.refine_spacing(vertebra, 0.5, (0.9, 0.9, 2.0)) == pytest.approx(0.5)
-    assert prepare.refine_spacing(vertebra, 0.75, (3.0, 3.0, 3.0)) == 0.75  # CT coarser than d
-    assert prepare.refine_spacing(vertebra, 0.5, (0.1, 0.1, 0.1)) == prepare.REFINE_GRID_MIN_MM
+    assert prepare.refine_spacing(vertebra, 0.5, (0.6, 0.6, 1.0)) == pytest.approx((0.4, 0.4, 0.5))
+    assert prepare.refine_spacing(vertebra, 0.62, (0.7, 0.7, 2.5)) == pytest.approx((0.47, 0.47, 0.62))
+    assert prepare.refine_spacing(vertebra, 0.75, (3.0, 3.0, 3.0)) == (0.75, 0.75, 0.75)
+    assert prepare.refine_spacing(vertebra, 0.5, (0.1, 0.1, 0.1)) == (prepare.REFINE_GRID_MIN_MM,) * 3
     femur = np.array([113.0, 80.0, 175.0])
-    r = prepare.refine_spacing(femur, 0.59, (0.6, 0.6, 1.0))  # the first step that fits
-    assert 0.4 <= r < 0.59
-    assert prepare.grid_voxels(femur, r) <= prepare.REFINE_GRID_VOXELS
-    assert prepare.grid_voxels(femur, round(r - 0.01, 2)) > prepare.REFINE_GRID_VOXELS or r == 0.4
+    r = prepare.refine_spacing(femur, 0.59, (0.6, 0.6, 1.0))  # the first steps that fit
+    assert 0.4 <= r[0] == r[1] < 0.59 and r[2] == 0.59
+
+    def voxels(st):
+        return float(np.prod(np.ceil(femur / np.asarray(st)) + 1))
+
+    assert voxels(r) <= prepare.REFINE_GRID_VOXELS
+    assert voxels((r[0] - 0.01, r[1] - 0.01, r[2])) > prepare.REFINE_GRID_VOXELS or r[0] == 0.4
     pelvis = np.array([330.0, 219.0, 345.0])  # too big for a field of its own: the working grid
-    assert prepare.refine_spacing(pelvis, 1.0, (0.7, 0.7, 2.5)) == 1.0
-    hip = np.array([200.0, 150.0, 210.0])
-    r = prepare.refine_spacing(hip, 1.0, (0.7, 0.7, 2.5))
-    assert 0.47 < r < 1.0 and prepare.grid_voxels(hip, r) <= prepare.REFINE_GRID_VOXELS
+    assert prepare.refine_spacing(pelvis, 1.0, (0.7, 0.7, 2.5)) == (1.0, 1.0, 1.0)
     tight = prepare.refine_spacing(femur, 0.59, (0.6, 0.6, 1.0), spare_bytes=40e6)
-    assert 0.4 < tight <= 0.59
-    assert prepare.grid_voxels(femur, tight) * prepare.REFINE_BYTES_PER_VOXEL <= 40e6 or tight == 0.59
+    assert r[0] < tight[0] <= 0.59
+    assert voxels(tight) * prepare.REFINE_BYTES_PER_VOXEL <= 40e6 or tight[0] == 0.59
 
 
 @pytest.mark.parametrize("cut", [False, True])
@@ -285,13 +286,14 @@ def test_refine_ct_is_the_working_grids_interpolation_on_a_finer_grid(cut):
     labels.CopyInformation(ct)
     prep = prepare.prepare_labels(ct, labels, [1], spacing=0.8)
     assert any(prep.pad[0]) == cut
-    prep.refine_spacing = 0.4
+    prep.refine_spacing = (0.4, 0.2, 0.8)  # x, y, z
     fine = prepare.refine_ct(prep)
     coarse = prep.ct
     assert fine.dtype == np.float32
-    shared = fine[::2, ::2, ::2]
+    shared = fine[:, ::4, ::2]
     n = tuple(min(a, b) for a, b in zip(shared.shape, coarse.shape))
-    assert abs(fine.shape[0] - 2 * coarse.shape[0]) <= 2
+    assert fine.shape[0] == coarse.shape[0]
+    assert abs(fine.shape[1] - 4 * coarse.shape[1]) <= 4
     assert np.abs(shared[:n[0], :n[1], :n[2]] - coarse[:n[0], :n[1], :n[2]]).max() < 1e-2
-    prep.refine_spacing = prep.grid.spacing
+    prep.refine_spacing = (prep.grid.spacing,) * 3
     assert prepare.refine_ct(prep) is prep.ct
