@@ -113,7 +113,7 @@ def sample_field(field_zyx: np.ndarray, points_grid_mm: np.ndarray, spacing: flo
     Parameters
     ----------
     field_zyx : (z, y, x) array
-        Values on an isotropic grid of ``spacing`` mm.
+        Values on a grid of step ``spacing`` mm.
     points_grid_mm : (k, 3) float array
         x-y-z points in grid millimetres (voxel index * spacing).
     spacing : float or (x, y, z) floats

@@ -186,16 +186,17 @@ def estimate_memory_bytes(extent_mm: np.ndarray, spacing: float) -> float:
 # The CT that the edge refinement samples (stages.refine) may lie on a finer grid than the
 # working grid: the refinement places each vertex between voxels from the CT's own values, so
 # its field should resolve what the CT resolves, while the working grid carries the bone's shape
-# (masks, M0, the deformation). Its step: REFINE_GRID_CT_FRACTION x the CT's finest spacing,
-# at least REFINE_GRID_MIN_MM, never coarser than the working grid, coarser when the field
-# would pass REFINE_GRID_VOXELS voxels or the memory left. Measured on the femur phantom (CT
-# 0.6 x 0.6 x 1 mm), p95 / max to the truth (mm) for working grids of 0.59 / 0.7 / 0.8 mm:
-# field on the working grid 0.144/0.51, 0.152/0.46, 0.162/0.94; field at 0.4 mm 0.137/0.54,
-# 0.138/0.49, -; at 0.5 mm -, 0.140/0.47, 0.141/0.91; at 0.6 mm -, 0.145/0.39, 0.145/0.95.
-# The working grid stays the automatic spacing's: coarser ones cost accuracy where the shape
-# is fine (L1-L5 of the 3 mm CT on a 0.87 mm grid, field 0.75 mm: max to the reference up to
-# 1.3 mm larger). 16 M voxels (64 MB): the femur's field at 0.47 mm, p95 0.140 mm, the run's
-# peak +30-40 MB, its time unchanged within the runs' spread.
+# (masks, M0, the deformation). Its step per axis: REFINE_GRID_CT_FRACTION x the CT's spacing on
+# that axis, at least REFINE_GRID_MIN_MM, never coarser than the working grid, coarser when the
+# field would pass REFINE_GRID_VOXELS voxels or the memory left. Per axis, because a thick-slice
+# CT's slices, interpolated finer, move the ends the slices blur (one finer step on every axis:
+# the 0.7 x 2.5 mm anatomical femur's p95 0.73-0.75 -> 0.80-0.87 mm, at its end). Measured at
+# stop 36 against the working grid's field: femur phantom (0.6 x 0.6 x 1 mm CT) mean / p95 /
+# max 0.060 / 0.144 / 0.508 -> 0.057 / 0.137 / 0.520 mm; 22 bones of the 0.7 x 2.5 mm anatomical
+# phantoms (seeds 7, 11, 23): mean smaller on all 22, p95 smaller on 16 (by up to 0.09 mm), the
+# same on 4, up to 0.012 mm larger on 2 (sacra), max -0.36 .. +0.22 mm (9 smaller, 9 larger);
+# the femur's command line +0.0-1.0 s, peak +15-80 MB. CTs no finer than the
+# working grid (3 mm, 0.98 x 2 mm, 1.5 mm) keep it: the same surfaces.
 REFINE_GRID_CT_FRACTION = 2.0 / 3.0
 REFINE_GRID_MIN_MM = 0.25
 REFINE_GRID_VOXELS = 16_000_000
@@ -565,7 +566,8 @@ def prepare_labels(ct: sitk.Image, labels: sitk.Image, targets, *, spacing: floa
                           targets=[values.index(t) + 1 for t in targets], coarseness=coarse,
                           caps=caps, native=(native_ct, native_lab, tuple(spacing_ct.tolist())),
                           ct_spacing=tuple(spacing_ct.tolist()), info=info,
-                          refine_spacing=d_refine, pad=(tuple(pad_lo.tolist()), tuple(pad_hi.tolist())),
+                          refine_spacing=d_refine,
+                          pad=(tuple(pad_lo.tolist()), tuple(pad_hi.tolist())),
                           extent_mm=tuple(float(e) for e in extent_mm))
 
 

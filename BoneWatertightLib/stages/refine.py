@@ -164,9 +164,9 @@ def refine_to_edges(vertices, faces, ct_smooth, spacing, ht, *, edge_level=None,
         x-y-z grid millimetres; an outward, intersection-free closed surface.
     faces : (m, 3) int array
     ct_smooth : (z, y, x) float array
-        The lightly smoothed CT (HU) on the working grid.
-    spacing : float
-        Voxel size in mm.
+        The lightly smoothed CT (HU) on a grid from the working grid's first voxel.
+    spacing : float or (x, y, z) floats
+        That grid's step in mm (or per axis).
     ht : float
         HT in HU: a profile whose peak is below it gives no edge.
     edge_level : float or None
