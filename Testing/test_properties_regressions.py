@@ -236,8 +236,7 @@ def test_a_run_coarsens_the_automatic_spacing_to_its_memory_limit_and_says_so():
 def test_auto_spacing_is_what_a_run_uses():
     scene = _phantomish_scene()
     res = reconstruct(scene.ct(), scene.label_map(), Parameters(**FAST))
-    assert voxels((r[0] - 0.01, r[1] - 0.01, r[2])) > prepare.REFINE_GRID_VOXELS \
-        or r[0] == 0.4
+    assert res.report.input["resample_spacing_mm"] == pytest.approx(prepare.AUTO_SPACING_RANGE_MM[0])
 
 
 # ---------------------------------------------------------------------------- refinement grid
@@ -259,7 +258,8 @@ def test_refine_spacing_follows_the_ct_and_never_passes_the_working_grid():
         return float(np.prod(np.ceil(femur / np.asarray(st)) + 1))
 
     assert voxels(r) <= prepare.REFINE_GRID_VOXELS
-    assert voxels((r[0] - 0.01, r[1] - 0.01, r[2])) > prepare.REFINE_GRID_VOXELS or r[0] == 0.4
+    assert voxels((r[0] - 0.01, r[1] - 0.01, r[2])) > prepare.REFINE_GRID_VOXELS \
+        or r[0] == 0.4
     pelvis = np.array([330.0, 219.0, 345.0])  # too big for a field of its own: the working grid
     assert prepare.refine_spacing(pelvis, 1.0, (0.7, 0.7, 2.5)) == (1.0, 1.0, 1.0)
     tight = prepare.refine_spacing(femur, 0.59, (0.6, 0.6, 1.0), spare_bytes=40e6)
