@@ -1254,7 +1254,10 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
             plaus.unlabelled_contact_mm2 = float(cc["contact_area_mm2"])
             plaus.unlabelled_contact_seen = float(cc["valley_seen_fraction"])
     plaus.surface_area_mm2 = surface_area(phys, faces)
-    _plaus.gate(plaus, coarseness=ws.prep.coarseness, band_mm=ws.band, name=bone.name)
+    th = ws.thresholds
+    _plaus.gate(plaus, coarseness=ws.prep.coarseness, band_mm=ws.band, name=bone.name,
+                estimated=((th["h0"], th["ht"]) if th.get("h0_auto") and th.get("ht_auto")
+                           else None))
     return plaus, box, seg_all[box]
 
 

@@ -1164,3 +1164,18 @@ def test_m0_tunnels_in_a_plate_a_voxel_thick_are_plugged_from_the_bone_last():
             assert info["thin_plate_plugs"] >= 1 and info["bone_fill_mm3"] > 0
         else:
             assert surface_genus(out) == 1 and info["thin_plate_plugs"] == 0
+
+
+def test_the_threshold_advice_follows_where_the_thresholds_came_from():
+    """Too little of the bone selected: the user's own H0/HT can go back to the estimate; when
+    they were estimated already, the advice is to set them lower (not "use automatic ones")."""
+    for missing, edge in ((0.4, 0.95), (0.0, 0.1)):
+        measures = dict(missing_fraction=missing, edge_support=edge)
+        own = plausibility.gate(plausibility.Plausibility(**measures), coarseness=3.0,
+                                band_mm=3.0, name="L4")
+        auto = plausibility.gate(plausibility.Plausibility(**measures), coarseness=3.0,
+                                 band_mm=3.0, name="L4", estimated=(196.0, 146.0))
+        assert len(own.problems) == len(auto.problems) == 1
+        assert "Use automatic thresholds" in own.problems[0]
+        assert "Use automatic thresholds" not in auto.problems[0]
+        assert "below the estimated 196 / 146 HU" in auto.problems[0]

@@ -297,8 +297,20 @@ def _block_majority(mask: np.ndarray, f: int) -> np.ndarray:
     return count.astype(np.uint32) * 2 >= f ** 3
 
 
-def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str) -> Plausibility:
-    """Fill ``p.bounds`` and ``p.problems`` (each problem says what is wrong and what to do)."""
+def _threshold_advice(estimated) -> str:
+    """What to do about thresholds that select too little of the bone: the user's own values
+    can go back to the estimate; estimated ones (``estimated``: (H0, HT) HU) only lower."""
+    if estimated is not None:
+        return (f"Set H0 / HT below the estimated {estimated[0]:.0f} / {estimated[1]:.0f} HU "
+                "(options h0, ht)")
+    return "Use automatic thresholds (h0/ht auto) or lower H0/HT"
+
+
+def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str,
+         estimated=None) -> Plausibility:
+    """Fill ``p.bounds`` and ``p.problems`` (each problem says what is wrong and what to do;
+    ``estimated``: (H0, HT) in HU when both were estimated, not the user's; None otherwise)."""
+    advice = _threshold_advice(estimated)
     max_exc = band_mm + EXCURSION_COARSENESS * coarseness + EXCURSION_MM
     p.bounds = {"missing_fraction_max": MAX_MISSING_FRACTION,
                 "unlabelled_fraction_max": MAX_UNLABELLED_FRACTION,
@@ -311,8 +323,7 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str) -> Pl
         problems.append(
             f"{name}: {100 * p.missing_fraction:.0f} % of what the segment clearly covers is "
             f"outside the surface (at most {100 * MAX_MISSING_FRACTION:.0f} %): part of the bone "
-            "is missing. Use automatic thresholds (h0/ht auto) or lower H0/HT, or check that the "
-            "segment is this bone")
+            f"is missing. {advice}, or check that the segment is this bone")
     untouched = p.untouched_bone_ml / max(p.segment_ml, 1e-9)
     if untouched > MAX_UNTOUCHED_FRACTION:
         problems.append(
@@ -359,7 +370,7 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str) -> Pl
         problems.append(
             f"{name}: the CT shows a bone edge at only {100 * p.edge_support:.0f} % of the surface "
             f"(at least {100 * MIN_EDGE_SUPPORT:.0f} %): the thresholds select almost none of the "
-            "bone's border. Use automatic thresholds (h0/ht auto) or lower H0/HT")
+            f"bone's border. {advice}")
     p.problems = problems
     warn_exc = EXCURSION_WARN_COARSENESS * coarseness + EXCURSION_WARN_MM
     p.bounds["p95_excursion_warn_mm"] = warn_exc
