@@ -1237,6 +1237,19 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
     lab_b = lab[box]
     cores_b = own.cores[box]
     frac = bone.refinement.fraction_with_edge
+    soft_tissue = None
+    if ws.ct_smooth is not None:
+        th = ws.thresholds
+        level = th["soft_tissue_hu"] + _ownership.LABEL_LEVEL_FRACTION * (ws.ht - th["soft_tissue_hu"])
+        if np.isscalar(ws.ct_smooth_d):
+            hu = ws.ct_smooth[box]
+        else:
+            zz, yy, xx = np.meshgrid(*[np.arange(s.start, s.stop) for s in box], indexing="ij")
+            pts = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1) * d  # x, y, z grid mm
+            del zz, yy, xx
+            hu = sample_field(ws.ct_smooth, pts, ws.ct_smooth_d,
+                              cval=-1000.0).reshape(tuple(s.stop - s.start for s in box))
+        soft_tissue = hu < level
     plaus = _plaus.measure(
         inside, verts - corner, seg_all[box], (lab_b > 0) & (lab_b != k),
         (cores_b > 0) & (cores_b != k), _plaus.image_mask(box, planes, d), d,
@@ -1248,7 +1261,7 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
         unlabelled=None if own.merged is None else own.merged[box] & (own.owner[box] == k),
         added=None if own.added is None else own.added[box] & (own.owner[box] == k),
         others_owned=(own.owner[box] > 0) & (own.owner[box] != k),
-        contact_mm=float(own.info.get("contact_zone_mm", 0.0)))
+        contact_mm=float(own.info.get("contact_zone_mm", 0.0)), soft_tissue=soft_tissue)
     for cc in own.contacts:
         if cc["a"] == k and cc["b"] == own.other:
             plaus.unlabelled_contact_mm2 = float(cc["contact_area_mm2"])

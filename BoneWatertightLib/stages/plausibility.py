@@ -152,7 +152,8 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
             unlabelled: np.ndarray | None = None,
             added: np.ndarray | None = None,
             others_owned: np.ndarray | None = None,
-            contact_mm: float = 0.0) -> Plausibility:
+            contact_mm: float = 0.0,
+            soft_tissue: np.ndarray | None = None) -> Plausibility:
     """Compare a surface with its segment on a box of the working grid.
 
     Parameters
@@ -192,6 +193,9 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     contact_mm : float
         Within this of another label the labels compete and the CT decides where one bone ends
         (the ownership's contact zone): not counted as missing either.
+    soft_tissue : (z, y, x) bool array, optional
+        Voxels the CT shows to be soft tissue (below the label's bone level): a generous
+        segment's margin beside a plate thinner than it, not missing bone.
     """
     unsupported_ml = 0.0
     unlabelled_ml = 0.0
@@ -229,6 +233,8 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
             owned = _block_majority(owned, f)
         if others_owned is not None:
             others_owned = _block_majority(others_owned, f)
+        if soft_tissue is not None:
+            soft_tissue = _block_majority(soft_tissue, f)
         spacing = spacing * f
         vertices = vertices - 0.5 * (spacing - spacing / f)  # block centres are offset
         label &= in_image
@@ -258,6 +264,8 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     if contact_mm > 0 and neighbours.any():
         part &= distance_outside(neighbours) * spacing > contact_mm
     deep = part & deep_enough
+    if soft_tissue is not None and (deep & ~soft_tissue).any():
+        deep &= ~soft_tissue
     if not deep.any():
         deep = part if part.any() else label
     missing = float((deep & ~inside).sum() / max(deep.sum(), 1))

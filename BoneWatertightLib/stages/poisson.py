@@ -332,6 +332,19 @@ def _closing_adds(field_zyx: np.ndarray, h: float, radius_mm: float) -> np.ndarr
     return (distance_inside(grown, h) > radius_mm) & ~occ
 
 
+def _label_sheet(label: np.ndarray, h: float, reach_mm: float) -> np.ndarray:
+    """The middle of the segment where it is thick: voxels whose depth in it is within one grid
+    step of the largest depth within ``reach_mm`` (a segment two or three steps thick is kept
+    whole). A plug of a hole in a thin plate taken from this has about the plate's thickness
+    where a coarse, generous segment is several times thicker than the plate."""
+    from ..mesh.distance import distance_inside
+
+    depth = distance_inside(np.pad(label, 1), h)[1:-1, 1:-1, 1:-1]
+    size = 2 * max(1, int(np.ceil(reach_mm / h))) + 1
+    top = ndimage.maximum_filter(depth, size=size)
+    return label & (depth >= top - 1.5 * h)
+
+
 def _close_with_label(field_zyx: np.ndarray, label: np.ndarray, h: float,
                       radius_mm: float) -> np.ndarray:
     """Voxels of ``label`` that a closing of the occupancy (field >= 0.5) by a ball of
@@ -679,7 +692,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
             return True
         return False
 
-    def plug_holes(source, last_trial, goal, thin=False):
+    def plug_holes(source, last_trial, goal, thin=False, sheet=None):
         """Plugs of ``source`` (z, y, x bool) tried all at once, then one by one, largest
         first, up to contour number ``last_trial`` or genus ``goal``; returns how many were
         kept. Plugs of at least FILL_MIN_VOXELS voxels; with ``thin``, also those of plates
@@ -689,10 +702,19 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         pieces, size = _plugs(field_zyx, source, h, reach, ridges=thin)
         least_together = 1 if thin else FILL_MIN_VOXELS
         big = np.flatnonzero(size >= least_together)
+        def attempt_thin_first(add):
+            # the plug's middle sheet first (as thin as the plate), then the whole plug
+            if sheet is not None:
+                thin_add = add & sheet
+                if thin_add.any() and not np.array_equal(thin_add, add) \
+                        and attempt(thin_add, soft=True):
+                    return True
+            return attempt(add, soft=True)
+
         if len(big) > 1:
             every = ndimage.binary_dilation(np.isin(pieces, big), structure=np.ones((3, 3, 3), bool),
                                             iterations=2) & source
-            if attempt(every, soft=True):
+            if attempt_thin_first(every):
                 kept += int(len(big))
                 size[big] = 0
         for p in np.argsort(size)[::-1]:
@@ -700,7 +722,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
                 break
             grown = ndimage.binary_dilation(pieces == p, structure=np.ones((3, 3, 3), bool),
                                             iterations=2) & source
-            if attempt(grown, soft=True):
+            if attempt_thin_first(grown):
                 kept += 1
         return kept
 
@@ -710,7 +732,8 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         if add.any():
             attempt(add, soft=False)
     if genus > fusion.genus:
-        fusion.info["plugs"] += plug_holes(label, FILL_MAX_TRIALS, fusion.genus)
+        fusion.info["plugs"] += plug_holes(label, FILL_MAX_TRIALS, fusion.genus,
+                                           sheet=_label_sheet(label, h, reach))
     from_label = filled.copy()
     bone = None
     if genus > 0 and fusion.bone is not None:
