@@ -1119,7 +1119,9 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
     progress(0.6, f"{name}: plausibility")
     _release_between_steps(ws)  # its distance maps come on top of what the checks freed
     with timed(bone.times, "plausibility"):
-        plaus, box, segment = plausibility_of(run, ws, bone, verts, faces, phys, planes)
+        evidence, confidence, summary = evidence_of(run, ws, bone, verts, faces, flags)
+        plaus, box, segment = plausibility_of(run, ws, bone, verts, faces, phys, planes,
+                                              edges=verts[evidence == _evidence.EDGE])
     warnings = _plausibility_warnings(run, plaus)
     fusion = bone.fusion
     if not planes and fusion is not None and fusion.genus is not None \
@@ -1134,8 +1136,6 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
     constraints = bone.constraints
     dist, _ = cKDTree(grid.grid_to_physical(constraints)).query(phys, workers=-1) \
         if len(constraints) else (np.zeros(len(phys)), None)
-    with timed(bone.times, "plausibility"):
-        evidence, confidence, summary = evidence_of(run, ws, bone, verts, faces, flags)
     warnings += _evidence.evidence_warnings(name, summary,
                                             _plate_min_thickness(run.params, ws.d))
     surface = Surface(phys, faces, "LPS", {"DistanceToConstraints": dist, "Evidence": evidence,
@@ -1225,7 +1225,7 @@ def _raise_failed_checks(checks, phys, faces, planes, name) -> None:
 
 
 def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys,
-                    planes) -> tuple:
+                    planes, edges=None) -> tuple:
     """(stages.plausibility's measures, gated; the box they were measured on (slices of the
     working grid); the bone's segment on that box, (z, y, x) bool)."""
     k, d, own, lab = bone.k, ws.d, ws.own, ws.labels
@@ -1261,7 +1261,8 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
         unlabelled=None if own.merged is None else own.merged[box] & (own.owner[box] == k),
         added=None if own.added is None else own.added[box] & (own.owner[box] == k),
         others_owned=(own.owner[box] > 0) & (own.owner[box] != k),
-        contact_mm=float(own.info.get("contact_zone_mm", 0.0)), soft_tissue=soft_tissue)
+        contact_mm=float(own.info.get("contact_zone_mm", 0.0)), soft_tissue=soft_tissue,
+        edge_points=None if edges is None else edges - corner)
     for cc in own.contacts:
         if cc["a"] == k and cc["b"] == own.other:
             plaus.unlabelled_contact_mm2 = float(cc["contact_area_mm2"])

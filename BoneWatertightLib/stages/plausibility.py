@@ -153,7 +153,8 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
             added: np.ndarray | None = None,
             others_owned: np.ndarray | None = None,
             contact_mm: float = 0.0,
-            soft_tissue: np.ndarray | None = None) -> Plausibility:
+            soft_tissue: np.ndarray | None = None,
+            edge_points: np.ndarray | None = None) -> Plausibility:
     """Compare a surface with its segment on a box of the working grid.
 
     Parameters
@@ -196,6 +197,10 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     soft_tissue : (z, y, x) bool array, optional
         Voxels the CT shows to be soft tissue (below the label's bone level): a generous
         segment's margin beside a plate thinner than it, not missing bone.
+    edge_points : (k, 3) float array, optional
+        The surface's vertices on a CT edge (x-y-z mm relative to the box corner): the segment
+        outside the surface within ``coarseness`` of one lies beyond a cortical edge the CT
+        shows - the segment's generosity, not missing bone.
     """
     unsupported_ml = 0.0
     unlabelled_ml = 0.0
@@ -237,6 +242,8 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
             soft_tissue = _block_majority(soft_tissue, f)
         spacing = spacing * f
         vertices = vertices - 0.5 * (spacing - spacing / f)  # block centres are offset
+        if edge_points is not None:
+            edge_points = edge_points - 0.5 * (spacing - spacing / f)
         label &= in_image
     voxel = spacing ** 3
     seg_n = int(label.sum())
@@ -266,6 +273,16 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     deep = part & deep_enough
     if soft_tissue is not None and (deep & ~soft_tissue).any():
         deep &= ~soft_tissue
+    beyond = np.zeros(deep.shape, bool)
+    if edge_points is not None and len(edge_points) and (deep & ~inside).any():
+        from scipy.spatial import cKDTree
+
+        cand = np.argwhere(deep & ~inside)
+        dist, _ = cKDTree(edge_points).query(cand[:, ::-1] * spacing, workers=-1)
+        near = cand[dist <= coarseness]
+        beyond[tuple(near.T)] = True
+        if (deep & ~beyond).any():
+            deep &= ~beyond
     if not deep.any():
         deep = part if part.any() else label
     missing = float((deep & ~inside).sum() / max(deep.sum(), 1))
