@@ -1179,3 +1179,43 @@ def test_the_threshold_advice_follows_where_the_thresholds_came_from():
         assert "Use automatic thresholds" in own.problems[0]
         assert "Use automatic thresholds" not in auto.problems[0]
         assert "below the estimated 196 / 146 HU" in auto.problems[0]
+
+
+def test_a_generous_label_beyond_the_cts_edge_is_not_missing_bone():
+    """A plate 2 voxels thick inside a label 8 voxels thick (a generous AI label of a thin
+    blade): the label's deep part outside the plate is not missing bone where the plate's
+    faces are CT edges within the label's coarseness of it; without those edges it is (the
+    run fails); a part of the label far from every edge (a piece of the plate not
+    reconstructed) still counts."""
+    shape = (30, 40, 40)
+    label = np.zeros(shape, bool)
+    label[11:19, 4:36, 4:36] = True       # 8 voxels thick
+    plate = np.zeros(shape, bool)
+    plate[14:16, 4:36, 4:36] = True       # 2 voxels thick, in its middle
+    faces = np.argwhere(plate & ~ndimage.binary_erosion(plate))[:, ::-1].astype(float)
+    without = _measure(plate, label)
+    assert without.missing_fraction > 0.5 and not without.ok
+    with_edges = _measure(plate, label, edge_points=faces)
+    assert with_edges.missing_fraction < 0.05 and with_edges.ok, with_edges.problems
+    # half of the plate lost: the label over it lies far from every edge
+    half = plate.copy()
+    half[:, :, 20:] = False
+    edges = np.argwhere(half & ~ndimage.binary_erosion(half))[:, ::-1].astype(float)
+    lost = _measure(half, label, edge_points=edges)
+    assert lost.missing_fraction > 0.3 and not lost.ok
+
+
+def test_the_segments_sheet_is_its_middle_where_it_is_thick():
+    """Plugs from a generous segment are tried as its middle sheet first: within 1.5 steps of
+    its deepest part nearby; a segment 2 steps thick is kept whole."""
+    from BoneWatertightLib.stages.poisson import _label_sheet
+
+    thick = np.zeros((30, 20, 20), bool)
+    thick[5:25, 2:18, 2:18] = True                 # 20 steps thick along z
+    sheet = _label_sheet(thick, 1.0, 3.0)
+    column = sheet[:, 10, 10]
+    assert column[5:25].sum() <= 20 and sheet.sum() < thick.sum()
+    assert column[15] and not column[6]            # the middle, not the faces
+    thin = np.zeros((30, 20, 20), bool)
+    thin[14:16, 2:18, 2:18] = True
+    assert np.array_equal(_label_sheet(thin, 1.0, 3.0), thin)
