@@ -1239,8 +1239,10 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
     frac = bone.refinement.fraction_with_edge
     soft_tissue = None
     if ws.ct_smooth is not None:
-        th = ws.thresholds
-        level = th["soft_tissue_hu"] + _ownership.LABEL_LEVEL_FRACTION * (ws.ht - th["soft_tissue_hu"])
+        # Below the level at which the ownership takes a label's voxels for bone, the CT shows
+        # soft tissue: a generous segment's margin there is not missing bone.
+        soft = ws.thresholds["soft_tissue_hu"]
+        level = soft + _ownership.LABEL_LEVEL_FRACTION * (ws.ht - soft)
         if np.isscalar(ws.ct_smooth_d):
             hu = ws.ct_smooth[box]
         else:

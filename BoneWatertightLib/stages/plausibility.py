@@ -124,6 +124,9 @@ class Plausibility:
     untouched_pieces: int = 0
     untouched_bone_ml: float = 0.0
     unsupported_segment_ml: float = 0.0
+    # The segment's deep part outside the surface not counted as missing: beyond a CT edge of
+    # the surface (within the coarseness) or soft tissue on the CT (a generous segment).
+    segment_beyond_edge_ml: float = 0.0
     unsupported_pieces: int = 0
     unlabelled_bone_ml: float = 0.0
     # Bone outside every segment that continues this bone (merged, see ownership step 4) and
@@ -271,18 +274,24 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     if contact_mm > 0 and neighbours.any():
         part &= distance_outside(neighbours) * spacing > contact_mm
     deep = part & deep_enough
-    if soft_tissue is not None and (deep & ~soft_tissue).any():
-        deep &= ~soft_tissue
-    beyond = np.zeros(deep.shape, bool)
-    if edge_points is not None and len(edge_points) and (deep & ~inside).any():
+    # The CT outranks a generous segment: what it shows as soft tissue, and what lies outside
+    # the surface within the segment's coarseness of a vertex on a CT edge (a segment thicker
+    # than the plate it covers), is the segment's margin, not missing bone. A part of the bone
+    # left out lies farther from every edge, or is bright.
+    excused = np.zeros(deep.shape, bool)
+    if soft_tissue is not None:
+        excused |= deep & soft_tissue & ~inside
+    if edge_points is not None and len(edge_points) and (deep & ~inside & ~excused).any():
         from scipy.spatial import cKDTree
 
-        cand = np.argwhere(deep & ~inside)
+        cand = np.argwhere(deep & ~inside & ~excused)
         dist, _ = cKDTree(edge_points).query(cand[:, ::-1] * spacing, workers=-1)
         near = cand[dist <= coarseness]
-        beyond[tuple(near.T)] = True
-        if (deep & ~beyond).any():
-            deep &= ~beyond
+        excused[tuple(near.T)] = True
+    excused_ml = 0.0
+    if (deep & ~excused).any():
+        excused_ml = float(excused.sum() * voxel / 1000.0)
+        deep &= ~excused
     if not deep.any():
         deep = part if part.any() else label
     missing = float((deep & ~inside).sum() / max(deep.sum(), 1))
@@ -304,6 +313,7 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         untouched_pieces=int(len(np.unique(pieces[islands]))),
         untouched_bone_ml=float(left_out.sum() * voxel / 1000.0),
         unsupported_segment_ml=unsupported_ml, unsupported_pieces=int(unsupported_pieces),
+        segment_beyond_edge_ml=excused_ml,
         unlabelled_bone_ml=unlabelled_ml, added_bone_ml=added_ml)
     return p
 
