@@ -66,12 +66,12 @@ def scene():
     return sc
 
 
-def _build(scene, *, cut=False, c_piece=False, c_slab=False):
+def _build(scene, *, cut=False, c_piece=False):
     """(CT node, segmentation node, {"A"|"B"|"C": segment ID}, IJK->RAS). ``cut``: a shorter
     grid whose last i plane cuts ball C. ``c_piece``: a longer grid with a second dense ball
-    (radius 4 mm) 2 mm beyond C, labelled C too: a piece of C's segment that one closed surface
-    cannot hold (C is implausible)."""
-    dims = (46, 28, 28) if cut else ((84, 28, 28) if c_piece else (62, 28, 28))
+    (radius 6.5 mm, 1.15 ml) 6.5 mm beyond C, labelled C too: a piece of C's segment that one
+    closed surface cannot hold (C is implausible)."""
+    dims = (46, 28, 28) if cut else ((92, 28, 28) if c_piece else (62, 28, 28))
     lin = ROT @ np.diag(SPACING)
     ijk_to_ras = np.eye(4)
     ijk_to_ras[:3, :3] = lin
@@ -80,19 +80,15 @@ def _build(scene, *, cut=False, c_piece=False, c_slab=False):
     p = (np.stack([i, j, k, np.ones_like(i)], -1) @ ijk_to_ras.T)[..., :3]
     edge = sum(0.5 * (1 - erf((np.linalg.norm(p - c, axis=-1) - R_MM) / (0.6 * math.sqrt(2))))
                for c in BALLS.values())
-    piece = BALLS["C"] + 17.0 * U
+    piece = BALLS["C"] + 20.0 * U
     if c_piece:
-        edge = edge + 0.5 * (1 - erf((np.linalg.norm(p - piece, axis=-1) - 4.0) / (0.6 * math.sqrt(2))))
+        edge = edge + 0.5 * (1 - erf((np.linalg.norm(p - piece, axis=-1) - 6.5) / (0.6 * math.sqrt(2))))
     hu = 40 + 960 * np.clip(edge, 0, 1) + np.random.default_rng(5).normal(0, 8, edge.shape)
     labels = np.zeros(edge.shape, np.uint8)
     if c_piece:
-        labels[np.linalg.norm(p - piece, axis=-1) <= 4.0] = 3
+        labels[np.linalg.norm(p - piece, axis=-1) <= 6.5] = 3
     for value, name in ((3, "C"), (2, "B"), (1, "A")):
         labels[np.linalg.norm(p - BALLS[name], axis=-1) <= R_MM - 1.0] = value
-    if c_slab:  # C's segment only a 4 mm slab through its middle: most of the ball unlabelled
-        labels[labels == 3] = 0
-        labels[(np.linalg.norm(p - BALLS["C"], axis=-1) <= R_MM - 1.0)
-               & (np.abs((p - BALLS["C"]) @ U) <= 2.0)] = 3
     rel = p - CENTRE
     t, v, w = rel @ U, rel @ V, rel @ W
     labels[(t >= -3.0) & (t <= 1.2) & (np.abs(v) <= 3) & (np.abs(w) <= 3)] = 1  # A's slab into B
