@@ -704,11 +704,13 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         first, up to contour number ``last_trial`` or genus ``goal``; returns how many were
         kept. Plugs of at least FILL_MIN_VOXELS voxels; with ``thin``, also those of plates
         thinner than the normals' smoothing (:func:`_plugs`' ``ridges``), and all of them,
-        however small, in the first trial."""
+        however small, in the first trial; with ``sheet`` (z, y, x bool), each tried as its
+        part in ``sheet`` first."""
         kept = 0
         pieces, size = _plugs(field_zyx, source, h, reach, ridges=thin)
         least_together = 1 if thin else FILL_MIN_VOXELS
         big = np.flatnonzero(size >= least_together)
+
         def attempt_thin_first(add):
             # the plug's middle sheet first (as thin as the plate), then the whole plug
             if sheet is not None:
