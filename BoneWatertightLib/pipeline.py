@@ -1244,14 +1244,17 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
         soft = ws.thresholds["soft_tissue_hu"]
         level = soft + _ownership.LABEL_LEVEL_FRACTION * (ws.ht - soft)
         if np.isscalar(ws.ct_smooth_d):
-            hu = ws.ct_smooth[box]
+            soft_tissue = ws.ct_smooth[box] < level
         else:
-            zz, yy, xx = np.meshgrid(*[np.arange(s.start, s.stop) for s in box], indexing="ij")
-            pts = np.stack([xx.ravel(), yy.ravel(), zz.ravel()], axis=1) * d  # x, y, z grid mm
-            del zz, yy, xx
-            hu = sample_field(ws.ct_smooth, pts, ws.ct_smooth_d,
-                              cval=-1000.0).reshape(tuple(s.stop - s.start for s in box))
-        soft_tissue = hu < level
+            # On the refinement's own grid, sampled where it matters: the segment outside the
+            # surface (all of the box's points at once were the run's peak of memory, +0.4 GB,
+            # and 0.6 s, on the femur).
+            out_seg = np.argwhere(seg_all[box] & ~inside)
+            soft_tissue = np.zeros(inside.shape, bool)
+            if len(out_seg):
+                pts = (out_seg[:, ::-1] + np.array([s.start for s in box][::-1])) * d
+                soft_tissue[tuple(out_seg.T)] = sample_field(
+                    ws.ct_smooth, pts, ws.ct_smooth_d, cval=-1000.0) < level
     plaus = _plaus.measure(
         inside, verts - corner, seg_all[box], (lab_b > 0) & (lab_b != k),
         (cores_b > 0) & (cores_b != k), _plaus.image_mask(box, planes, d), d,
