@@ -704,8 +704,8 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         first, up to contour number ``last_trial`` or genus ``goal``; returns how many were
         kept. Plugs of at least FILL_MIN_VOXELS voxels; with ``thin``, also those of plates
         thinner than the normals' smoothing (:func:`_plugs`' ``ridges``), and all of them,
-        however small, in the first trial; with ``sheet`` (z, y, x bool), each tried as its
-        part in ``sheet`` first."""
+        however small, in the first trial; with ``sheet`` (a dict, its "mask" made on first
+        use: the segment's middle sheet), each tried as its part in that sheet first."""
         kept = 0
         pieces, size = _plugs(field_zyx, source, h, reach, ridges=thin)
         least_together = 1 if thin else FILL_MIN_VOXELS
@@ -714,7 +714,9 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         def attempt_thin_first(add):
             # the plug's middle sheet first (as thin as the plate), then the whole plug
             if sheet is not None:
-                thin_add = add & sheet
+                if "mask" not in sheet:  # made once, when a plug is first tried
+                    sheet["mask"] = _label_sheet(label, h, reach)
+                thin_add = add & sheet["mask"]
                 if thin_add.any() and not np.array_equal(thin_add, add) \
                         and attempt(thin_add, soft=True):
                     return True
@@ -741,8 +743,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         if add.any():
             attempt(add, soft=False)
     if genus > fusion.genus:
-        fusion.info["plugs"] += plug_holes(label, FILL_MAX_TRIALS, fusion.genus,
-                                           sheet=_label_sheet(label, h, reach))
+        fusion.info["plugs"] += plug_holes(label, FILL_MAX_TRIALS, fusion.genus, sheet={})
     from_label = filled.copy()
     bone = None
     if genus > 0 and fusion.bone is not None:

@@ -173,7 +173,8 @@ def fitting_spacing(extent_mm: np.ndarray, max_memory_gb: float) -> Optional[flo
 
 
 def grid_voxels(extent_mm: np.ndarray, spacing: float) -> float:
-    """Voxels of a working grid over ``extent_mm`` (x, y, z) at ``spacing`` (an upper bound)."""
+    """Voxels of a grid over ``extent_mm`` (x, y, z) at ``spacing`` (mm, or (x, y, z) steps; an
+    upper bound)."""
     return float(np.prod(np.ceil(np.asarray(extent_mm, dtype=np.float64) / spacing) + 1))
 
 
@@ -214,10 +215,8 @@ def refine_spacing(extent_mm: np.ndarray, d: float, ct_spacing,
     or, with ``spare_bytes``, does not fit them."""
     steps = [min(float(np.ceil(max(REFINE_GRID_MIN_MM, REFINE_GRID_CT_FRACTION * float(s))
                                * 100.0 - 1e-6) / 100.0), d) for s in ct_spacing]
-    e = np.asarray(extent_mm, dtype=np.float64)
-
     def too_big(st):
-        n = float(np.prod(np.ceil(e / np.asarray(st)) + 1))
+        n = grid_voxels(extent_mm, np.asarray(st, dtype=np.float64))
         return n > REFINE_GRID_VOXELS or (spare_bytes is not None
                                           and n * REFINE_BYTES_PER_VOXEL > spare_bytes)
 
