@@ -5,6 +5,8 @@
   anisotropic spacing, a single slice).
 - ``distance.signed_distance``: one two-label transform against the difference of the two
   one-sided transforms (and against scipy's exact transform).
+- ``operators.solve_spd``: the three columns' conjugate gradients iterated together, against
+  scipy's ``cg`` column by column and a direct solve.
 """
 
 import os
@@ -250,3 +252,36 @@ def test_block_majority_is_the_blocks_count(f):
     out = _block_majority(mask, f)
     assert out.shape == count.shape and 0 < out.sum() < out.size
     assert np.array_equal(out, 2 * count >= f ** 3)
+
+
+def test_solve_spd_three_columns_at_once_is_scipys_cg_per_column():
+    """A mesh-Laplacian-like SPD system (regularised Laplacian of a random sparse graph), a
+    warm start, and a zero right-hand side in one column: the joint iteration gives scipy's
+    per-column CG iterates (to round-off) and the direct solution to CG's tolerance."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import cg, spsolve
+
+    from BoneWatertightLib.mesh import operators
+
+    rng = np.random.default_rng(4)
+    n = 3000
+    i = rng.integers(0, n, 12000)
+    j = rng.integers(0, n, 12000)
+    W = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
+    W = ((W + W.T) > 0).astype(np.float64)
+    L = sp.diags(np.asarray(W.sum(axis=1)).ravel()) - W
+    A = (L.T @ L + sp.diags(rng.uniform(0.05, 1.0, n))).tocsr()
+    rhs = rng.normal(size=(n, 3))
+    rhs[:, 1] = 0.0
+    x0 = rng.normal(size=(n, 3))
+    got = operators.solve_spd(A, rhs, x0)
+    assert np.array_equal(got[:, 1], np.zeros(n))
+    pre = sp.diags(1.0 / A.diagonal())
+    exact = spsolve(A.tocsc(), rhs)
+    for c in (0, 2):
+        ref, info = cg(A, rhs[:, c], x0=x0[:, c], rtol=operators.CG_RTOL,
+                       maxiter=operators.CG_MAX_ITERATIONS, M=pre)
+        assert info == 0
+        assert np.abs(got[:, c] - ref).max() <= 1e-9 * np.abs(ref).max()
+        assert np.linalg.norm(A @ got[:, c] - rhs[:, c]) <= 1.01 * operators.CG_RTOL * np.linalg.norm(rhs[:, c])
+        assert np.abs(got[:, c] - exact[:, c]).max() <= 1e-4 * np.abs(exact[:, c]).max()

@@ -274,7 +274,7 @@ def enforce(vertices: np.ndarray, faces: np.ndarray, phi_entry, spacing: float, 
         A_pp = A[idx][:, idx].tocsc()
         rhs_p = rhs[idx] - A[idx][:, rest] @ v[rest]
         new = v.copy()
-        new[idx] = np.column_stack([spsolve(A_pp, rhs_p[:, c]) for c in range(3)])
+        new[idx] = spsolve(A_pp, rhs_p)  # one factorisation for the three columns
         new, ok, _ = safe_update(v, new, faces, intersections=False)
         if not ok:
             new = v
