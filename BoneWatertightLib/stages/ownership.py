@@ -812,10 +812,11 @@ def _label_parts(ct, labels, n, spacing, *, r_core, r_contact, band_mm, t_low,
     out = _LabelParts(cores=np.zeros(shape, np.uint16), contact=np.zeros(shape, bool),
                       regions={}, union=np.zeros(shape, bool), core_depth={},
                       unsupported=np.zeros(shape, bool), unsupported_info={})
-    for step, i in enumerate(range(1, n + 1)):
+
+    def part(i):
         m = labels == i
         if not m.any():
-            continue
+            return None
         sl = bbox_slices(m, int(np.ceil(max(r_contact, band_mm) / spacing)) + 2)
         sub = m[sl]
         depth = distance_inside(np.pad(sub, 1))[1:-1, 1:-1, 1:-1] * spacing
@@ -825,22 +826,34 @@ def _label_parts(ct, labels, n, spacing, *, r_core, r_contact, band_mm, t_low,
         bad, pieces = unsupported_parts(ct[sl], sub, core, spacing, level=t_low)
         if pieces:
             core &= ~bad
-            out.unsupported[sl] |= bad
-            out.unsupported_info[i] = pieces
-        out.cores[sl][core] = i
-        out.core_depth[i] = r
         ext = [np.nonzero(sub.any(axis=tuple(a for a in range(3) if a != ax)))[0] for ax in range(3)]
         extent = max(int(e.max() - e.min() + 1) for e in ext) * spacing
         reg = segment_region(sub, spacing, close_mm=min(REGION_CLOSE_MM, REGION_CLOSE_FRACTION * extent),
                              dilate_mm=band_mm)
+        others = labelled[sl] & ~sub
+        contact = None
+        if others.any():
+            contact = sub & (distance_outside(others) * spacing <= r_contact)
+        return sl, core, r, bad, pieces, reg, contact
+
+    # The labels' parts are independent (their transforms and filters release the GIL): on
+    # threads, merged in label order (the progress callback only from this thread).
+    parts = thread_map(part, range(1, n + 1), cpu_threads(MAX_FILTER_THREADS), "labels")
+    for i, res in zip(range(1, n + 1), parts):
+        if progress:
+            progress(0.4 * i / n, "segment regions")
+        if res is None:
+            continue
+        sl, core, r, bad, pieces, reg, contact = res
+        if pieces:
+            out.unsupported[sl] |= bad
+            out.unsupported_info[i] = pieces
+        out.cores[sl][core] = i
+        out.core_depth[i] = r
         out.regions[i] = (sl, reg)
         out.union[sl] |= reg
-        others = labelled[sl] & ~sub
-        if others.any():
-            d_other = distance_outside(others) * spacing
-            out.contact[sl] |= sub & (d_other <= r_contact)
-        if progress:
-            progress(0.4 * (step + 1) / n, "segment regions")
+        if contact is not None:
+            out.contact[sl] |= contact
     return out
 
 
