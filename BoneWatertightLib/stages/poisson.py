@@ -38,6 +38,9 @@ REMESH_PAD_STEPS = 4
 REMESH_SMOOTH_SIGMA = 0.8
 # Windowed-sinc relaxation of the contour.
 SINC_ITERATIONS = 15
+# Back-off rounds that take a vertex half-way back to the unsmoothed contour before all the
+# way, where the smoothing made the contour pass through itself (:func:`_verified_smoothing`).
+SMOOTHING_BACKOFF_HALVINGS = 3
 SINC_PASS_BAND = 0.1
 # Filling tunnels the segment does not have (see _fill_tunnels): at most FILL_MAX_TRIALS
 # contours per surface; plugs of at least FILL_MIN_VOXELS grid voxels.
@@ -303,9 +306,10 @@ def _label_on(fusion: Fusion, shape: tuple, lo: np.ndarray, h: float,
 
 
 def carve_region(segment: np.ndarray, bone: np.ndarray, spacing: float, segment_margin_mm: float,
-                 bone_margin_mm: float) -> np.ndarray:
-    """Voxels that are neither bone nor segment: farther than ``segment_margin_mm`` from the
-    segment and farther than ``bone_margin_mm`` from the bone the CT shows.
+                 bone_margin_mm: float, soft_tissue: Optional[np.ndarray] = None) -> np.ndarray:
+    """Voxels that are neither bone nor segment: farther than ``bone_margin_mm`` from the bone
+    the CT shows, and farther than ``segment_margin_mm`` from the segment or, with
+    ``soft_tissue``, outside the segment where the CT shows soft tissue.
 
     Parameters
     ----------
@@ -314,6 +318,9 @@ def carve_region(segment: np.ndarray, bone: np.ndarray, spacing: float, segment_
     spacing : float
         Grid step (mm).
     segment_margin_mm, bone_margin_mm : float
+    soft_tissue : (z, y, x) bool array, optional
+        Where the CT shows soft tissue (a lumen the segment leaves open is carved however close
+        to the segment).
 
     Returns
     -------
@@ -322,6 +329,8 @@ def carve_region(segment: np.ndarray, bone: np.ndarray, spacing: float, segment_
     from ..mesh.distance import distance_outside
 
     free = distance_outside(segment, spacing) > segment_margin_mm
+    if soft_tissue is not None:
+        free |= soft_tissue & ~segment
     free &= distance_outside(bone, spacing) > bone_margin_mm
     return free
 
@@ -426,7 +435,9 @@ def _contour_fused(occ: np.ndarray, lo, h: float, fusion: Optional[Fusion],
         np.maximum(field, fusion.plates(field.shape, lo, h), out=field)
     if fusion is not None and fusion.carve is not None and fusion.label is not None:
         field = _carve(field, lo, h, fusion)
-    out = contour(field, lo, h, 0.5, smooth_iterations) if field.max() > 0.5 else None
+    out = (contour(field, lo, h, 0.5, smooth_iterations,
+                   info=None if fusion is None else fusion.info)
+           if field.max() > 0.5 else None)
     if out is not None and fusion is not None and fusion.label is not None \
             and fusion.genus is not None:
         out = _fill_tunnels(out, field, lo, h, fusion, smooth_iterations)
@@ -781,7 +792,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         fusion.info["bone_plugs"] += fusion.info["thin_plate_plugs"]
         fusion.info["bone_fill_mm3"] += float((filled & ~before).sum() * h ** 3)
     if filled.any():
-        out = contour(field_zyx, lo, h, 0.5, smooth_iterations)
+        out = contour(field_zyx, lo, h, 0.5, smooth_iterations, info=fusion.info)
     if from_label.any():
         fusion.info.update(label_fill_voxels=int(from_label.sum()),
                            label_fill_mm3=float(from_label.sum() * h ** 3))
@@ -795,7 +806,8 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
 
 
 def contour(field_zyx: np.ndarray, origin, h: float, level: float,
-            smooth_iterations: int = SINC_ITERATIONS, relax: bool = True) -> Surface:
+            smooth_iterations: int = SINC_ITERATIONS, relax: bool = True,
+            info: Optional[dict] = None) -> Surface:
     """Largest closed isosurface of a scalar field.
 
     Parameters
@@ -809,7 +821,11 @@ def contour(field_zyx: np.ndarray, origin, h: float, level: float,
     smooth_iterations : int
         Windowed-sinc iterations (0: none).
     relax : bool
-        Tangential relaxation of the vertices (near-uniform edges).
+        Tangential relaxation of the vertices (near-uniform edges). The smoothed and relaxed
+        surface is then verified free of self-intersections (:func:`_verified_smoothing`).
+    info : dict, optional
+        Gets ``smoothing_backed_off`` (vertices put back toward the unsmoothed contour) and
+        ``smoothing_dropped`` (True when the unsmoothed contour itself was kept).
     """
     from .. import _vtk as vtk
     from .._vtk import numpy_support as ns
@@ -846,9 +862,16 @@ def contour(field_zyx: np.ndarray, origin, h: float, level: float,
         last = sinc
     last.Update()
     surf = from_polydata(last.GetOutput())
-    surf = drop_degenerate(surf)
+    # The contour as flying edges made it (before the smoothing: the same points and faces)
+    # does not pass through itself; the smoothing and the relaxation may, in a narrow place.
+    raw = from_polydata(clean.GetOutput()).vertices if (relax and smooth_iterations) else None
+    if raw is not None and raw.shape != surf.vertices.shape:
+        raw = None  # not expected: the smoothing keeps the points; then the relaxation's check
+    surf, used = _drop_degenerate(surf)
     if relax:
-        surf.vertices = tangential_relax(surf.vertices, surf.faces)
+        raw = surf.vertices.copy() if raw is None else raw[used]
+        surf.vertices = _verified_smoothing(
+            raw, tangential_relax(surf.vertices, surf.faces), surf.faces, info)
     if enclosed_volume(surf.vertices, surf.faces) < 0:
         surf.faces = surf.faces[:, ::-1].copy()
     return surf
@@ -856,13 +879,40 @@ def contour(field_zyx: np.ndarray, origin, h: float, level: float,
 
 def drop_degenerate(surface: Surface) -> Surface:
     """Remove faces that repeat a vertex index (flying edges can emit them after merging)."""
+    return _drop_degenerate(surface)[0]
+
+
+def _drop_degenerate(surface: Surface) -> tuple:
+    """(:func:`drop_degenerate`, the indices of the vertices it keeps, or a slice of all)."""
     f = surface.faces
     ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
     if ok.all():
-        return surface
+        return surface, slice(None)
     faces = f[ok]
     used, inv = np.unique(faces, return_inverse=True)
-    return Surface(surface.vertices[used], inv.reshape(-1, 3), surface.coordinate_system)
+    return Surface(surface.vertices[used], inv.reshape(-1, 3), surface.coordinate_system), used
+
+
+def _verified_smoothing(raw: np.ndarray, smooth: np.ndarray, faces: np.ndarray,
+                        info: Optional[dict]) -> np.ndarray:
+    """``smooth`` (n, 3), the smoothed and relaxed vertices of a contour whose flying-edges
+    vertices were ``raw`` (n, 3) on the same ``faces``, free of self-intersections: where the
+    smoothing made the surface pass through itself (in a narrow canal or between two close
+    sheets), the vertices of the crossing faces go back toward ``raw`` (half-way first,
+    :func:`..mesh.operators.safe_update`); ``raw`` itself when that does not clear them."""
+    from ..mesh.checks import find_self_intersections
+    from ..mesh.operators import safe_update
+
+    if not len(find_self_intersections(smooth, faces, max_pairs=1)):
+        return smooth
+    out, ok, _ = safe_update(raw, smooth, faces, halvings=SMOOTHING_BACKOFF_HALVINGS)
+    if not ok:
+        out = raw
+    if info is not None:
+        info["smoothing_backed_off"] = info.get("smoothing_backed_off", 0) + int(
+            np.any(out != smooth, axis=1).sum())
+        info["smoothing_dropped"] = info.get("smoothing_dropped", False) or not ok
+    return out
 
 
 def initial_surface(points: np.ndarray, normals: np.ndarray, depth: int,
