@@ -803,10 +803,10 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
                            f"({fusion.info['narrow_fill_mm3']:.0f} mm^3; evidence: label only)",
                            int(fusion.info["narrow_plugs"]), "tunnels")
     if fusion.info.get("smoothing_backed_off"):
+        kept = ("the unsmoothed contour was kept" if fusion.info.get("smoothing_dropped")
+                else "those vertices were put back toward the unsmoothed contour")
         bone.fallbacks.add("poisson", "the smoothing of M0's contour made it pass through itself "
-                           "(a narrow canal or two close sheets): "
-                           + ("the unsmoothed contour was kept" if fusion.info.get("smoothing_dropped")
-                              else "those vertices were put back toward the unsmoothed contour"),
+                           f"(a narrow canal or two close sheets): {kept}",
                            int(fusion.info["smoothing_backed_off"]), "vertices")
     bone.fusion = fusion
     bone.m0 = Surface(m0.vertices + origin, m0.faces)

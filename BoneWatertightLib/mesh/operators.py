@@ -212,7 +212,8 @@ def solve_spd(A, rhs: np.ndarray, x0: np.ndarray, fallbacks=None,
     Each column follows its own CG recurrence and stops on its own when its residual falls
     below CG_RTOL x its right-hand side's norm (as three separate solves would); iterating them
     together turns three sparse products per step into one with three columns and shares the
-    interpreter's work per step (the femur's solves: 1.32 s one column at a time, 0.34 s together).
+    interpreter's work per step (the femur's solves: 1.32 s one column at a time, 0.34 s
+    together).
 
     Parameters
     ----------
