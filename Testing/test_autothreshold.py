@@ -119,3 +119,28 @@ def test_partial_volume_lowers_the_thresholds_with_floors():
     assert thick["h0"] < thin["h0"]
     assert thick["ht"] >= thick["soft_tissue"] + 100 - 1  # never at the soft-tissue level
     assert thick["h0"] >= thick["ht"] + 50 - 1
+
+
+def test_a_ct_stored_without_its_rescale_intercept_is_named():
+    """HU + 1024 (raw scanner values): the automatic thresholds would take the soft tissue
+    (~1064) for bone; they are refused with the advice to convert. The same CT in HU, a segment
+    of the marrow inside its cortex (its shell is bone, brighter than the segment) and the
+    levels asked for with thresholds given by hand (no check) are not refused."""
+    from BoneWatertightLib.errors import VolumeTypeError
+
+    ct, mask, r = _phantom()
+    raw = sitk.Cast(ct, sitk.sitkFloat32) + 1024.0
+    with pytest.raises(VolumeTypeError, match="rescale intercept.*subtract 1024"):
+        propose_thresholds(raw, mask)
+    arr = sitk.GetArrayFromImage(raw)
+    inside = sitk.GetArrayFromImage(mask) > 0
+    with pytest.raises(VolumeTypeError):
+        auto_thresholds(arr, inside.astype(np.uint8), [1], (0.8, 0.8, 0.8), 0.8)
+    tissue_levels(arr, inside, inside, (0.8, 0.8, 0.8), 0.8)  # by hand: measured, not refused
+    propose_thresholds(ct, mask)
+    marrow = sitk.GetImageFromArray((r <= 5.0).astype(np.uint8))
+    marrow.CopyInformation(ct)
+    try:
+        propose_thresholds(ct, marrow)
+    except ThresholdError:
+        pass  # no bone contrast around a marrow segment is another matter

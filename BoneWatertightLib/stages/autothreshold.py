@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import SimpleITK as sitk
 
-from ..errors import EmptySegmentError, ThresholdError
+from ..errors import EmptySegmentError, ThresholdError, VolumeTypeError
 from ..mesh.distance import distance_inside, distance_outside
 from .prepare import bbox_slices, on_grid_of
 
@@ -42,10 +42,21 @@ MIN_CONTRAST = 250.0
 # Used when the shell has fewer voxels than this.
 MIN_SHELL_VOXELS = 20
 DEFAULT_SOFT_TISSUE = 40.0
+# A CT stored without its rescale intercept holds HU + RAW_OFFSET_HU: at least RAW_MIN_SHIFTED
+# of the shell around the segment in SOFT_TISSUE_WINDOW shifted by the offset, at most
+# RAW_MAX_WINDOW_RATIO times as much in the window itself (raw air, ~24, falls in it), and the
+# segment brighter than its shell (bone inside soft tissue; a segment of marrow inside its
+# cortex is darker). Then the automatic thresholds are refused with that advice: they would
+# take the soft tissue for bone (a femur phantom +1024 had been refused as fused with
+# unlabelled bone, its "soft tissue" measured on the air at 27).
+RAW_OFFSET_HU = 1024.0
+RAW_MIN_SHIFTED = 0.5
+RAW_MAX_WINDOW_RATIO = 0.25
 
 
 def tissue_levels(ct: np.ndarray, inside: np.ndarray, labelled: np.ndarray,
-                  spacing_xyz, coarseness: float, fallbacks=None) -> tuple:
+                  spacing_xyz, coarseness: float, fallbacks=None,
+                  check_units: bool = False) -> tuple:
     """(soft-tissue HU, cortical HU) on the CT's own grid.
 
     Parameters
@@ -61,6 +72,9 @@ def tissue_levels(ct: np.ndarray, inside: np.ndarray, labelled: np.ndarray,
         The segmentation's coarseness (mm).
     fallbacks : BoneWatertightLib.report.FallbackLog, optional
         Notes a level measured on a wider region, or not measured at all (the default).
+    check_units : bool
+        Refuse (VolumeTypeError) a CT that looks stored without its rescale intercept
+        (see RAW_OFFSET_HU): for the automatic thresholds, which would be wrong on it.
     """
 
     def note(what, count):
@@ -75,6 +89,8 @@ def tissue_levels(ct: np.ndarray, inside: np.ndarray, labelled: np.ndarray,
     shell = ~inside & ~labelled & (d_out <= SHELL_MM) & (d_out > 0.5 * coarseness)
     lo, hi = SOFT_TISSUE_WINDOW
     s = ct[shell]
+    if check_units:
+        _check_not_raw(s, ct[inside])
     s = s[(s >= lo) & (s <= hi)]
     if s.size < MIN_SHELL_VOXELS:
         note(f"soft tissue: fewer than {MIN_SHELL_VOXELS} voxels in the shell around the "
@@ -94,6 +110,28 @@ def tissue_levels(ct: np.ndarray, inside: np.ndarray, labelled: np.ndarray,
         v = ct[inside]
     cortex = float(np.percentile(v, CORTEX_PERCENTILE))
     return soft, cortex
+
+
+def _check_not_raw(shell_values: np.ndarray, inside_values: np.ndarray) -> None:
+    """VolumeTypeError when the CT around the segment looks like raw scanner values, HU +
+    RAW_OFFSET_HU (see the constants); ``shell_values``, ``inside_values``: the CT in the
+    soft-tissue shell around the segment and in the segment."""
+    lo, hi = SOFT_TISSUE_WINDOW
+    if shell_values.size < MIN_SHELL_VOXELS or not inside_values.size:
+        return
+    in_window = float(np.mean((shell_values >= lo) & (shell_values <= hi)))
+    shifted = float(np.mean((shell_values >= lo + RAW_OFFSET_HU)
+                            & (shell_values <= hi + RAW_OFFSET_HU)))
+    around, within = float(np.median(shell_values)), float(np.median(inside_values))
+    if shifted >= RAW_MIN_SHIFTED and in_window <= RAW_MAX_WINDOW_RATIO * shifted \
+            and within > around:
+        raise VolumeTypeError(
+            "The CT does not look like Hounsfield units: the tissue around the segment reads "
+            f"about {around:.0f} ({100 * shifted:.0f} % of it {RAW_OFFSET_HU:.0f} above the "
+            f"soft-tissue window, {lo:.0f} to {hi:.0f} HU, {100 * in_window:.0f} % in it) and the segment "
+            f"about {within:.0f}. It looks stored without its rescale intercept (values = HU + "
+            f"{RAW_OFFSET_HU:.0f}): convert it to HU (subtract {RAW_OFFSET_HU:.0f}; a DICOM "
+            "series read by 3D Slicer or SimpleITK is converted), or give H0 and HT by hand.")
 
 
 def thresholds_from_levels(soft: float, cortex: float, theta_max: float) -> dict:
@@ -120,7 +158,8 @@ def auto_thresholds(ct: np.ndarray, labels: np.ndarray, targets, spacing_xyz, co
     inside = np.isin(labels, list(targets))
     if not inside.any():
         raise EmptySegmentError("The segment is empty; thresholds cannot be proposed.")
-    soft, cortex = tissue_levels(ct, inside, labels > 0, spacing_xyz, coarseness, fallbacks)
+    soft, cortex = tissue_levels(ct, inside, labels > 0, spacing_xyz, coarseness, fallbacks,
+                                 check_units=True)
     return thresholds_from_levels(soft, cortex, theta_max)
 
 
@@ -140,7 +179,7 @@ def propose_thresholds(ct: sitk.Image, mask: sitk.Image, theta_max: float = 2500
     box = bbox_slices(arr, np.ceil(2 * SHELL_MM / sp[::-1]).astype(int) + 1)
     values = sitk.GetArrayViewFromImage(ct)[box].astype(np.float64)
     coarse = float(max(max(mask.GetSpacing()), max(sp)))
-    soft, cortex = tissue_levels(values, arr[box], arr[box], sp, coarse)
+    soft, cortex = tissue_levels(values, arr[box], arr[box], sp, coarse, check_units=True)
     out = thresholds_from_levels(soft, cortex, theta_max)
     out["theta_max"] = float(theta_max)
     return out
