@@ -79,8 +79,8 @@ BAND_COARSENESS = 1.0
 # at HT (the segment's own uncertainty and the CT's partial-volume foot stay untouched).
 CARVE_SEGMENT_COARSENESS = 0.5
 CARVE_BONE_MM = 1.0
-# ... and where the CT shows soft tissue (below the ownership's label level, soft tissue +
-# LABEL_LEVEL_FRACTION x (HT - soft tissue)) outside the segment, from CARVE_BONE_MM + d of the
+# ... and where the CT shows soft tissue (below the ownership's label level, its
+# info["label_level_hu"]) outside the segment, from CARVE_BONE_MM + d of the
 # bone whatever the segment's distance: a canal or foramen that the segment leaves open and the
 # CT shows dark (the sacral canal on 3 mm slices: 6-9 mm across in the segment, so no voxel
 # of it lay the segment's margin away) is no part of M0's bone. Measured (stop 37): the real
@@ -779,8 +779,7 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     # Where neither the CT nor the segment has bone, M0 has none either: Poisson closes over
     # what the views do not see into (a curved canal, a deep notch).
     bone_ct = masks.occupancy | masks.w_ht | masks.w_h0
-    soft = ws.thresholds["soft_tissue_hu"]
-    lumen = ws.ct_f[masks.box] < soft + _ownership.LABEL_LEVEL_FRACTION * (ws.ht - soft)
+    lumen = ws.ct_f[masks.box] < own.info["label_level_hu"]
     fusion.carve = _poisson.carve_region(
         trusted, bone_ct, d, segment_margin_mm=CARVE_SEGMENT_COARSENESS * ws.prep.coarseness + d,
         bone_margin_mm=CARVE_BONE_MM + d, soft_tissue=lumen)
@@ -1258,8 +1257,7 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
     if ws.ct_smooth is not None:
         # Below the level at which the ownership takes a label's voxels for bone, the CT shows
         # soft tissue: a generous segment's margin there is not missing bone.
-        soft = ws.thresholds["soft_tissue_hu"]
-        level = soft + _ownership.LABEL_LEVEL_FRACTION * (ws.ht - soft)
+        level = own.info["label_level_hu"]
         if np.isscalar(ws.ct_smooth_d):
             soft_tissue = ws.ct_smooth[box] < level
         else:

@@ -215,6 +215,7 @@ def refine_spacing(extent_mm: np.ndarray, d: float, ct_spacing,
     or, with ``spare_bytes``, does not fit them."""
     steps = [min(float(np.ceil(max(REFINE_GRID_MIN_MM, REFINE_GRID_CT_FRACTION * float(s))
                                * 100.0 - 1e-6) / 100.0), d) for s in ct_spacing]
+
     def too_big(st):
         n = grid_voxels(extent_mm, np.asarray(st, dtype=np.float64))
         return n > REFINE_GRID_VOXELS or (spare_bytes is not None
