@@ -1181,6 +1181,29 @@ def test_the_threshold_advice_follows_where_the_thresholds_came_from():
         assert "below the estimated 196 / 146 HU" in auto.problems[0]
 
 
+def test_a_separate_piece_is_said_first_and_not_blamed_on_the_thresholds():
+    """A segment in two pieces of bone (a label that also covers a piece of the next bone, as
+    a TotalSegmentator T11 on a slab does): the surface holds one; the run fails on the piece
+    left out, said first, and the missing fraction it causes does not advise other
+    thresholds. A piece missing inside the surface's own piece still does."""
+    shape = (40, 40, 60)
+    big = _ball(shape, (18, 20, 20), 12)
+    small = _ball(shape, (48, 20, 20), 8)
+    label = big | small
+    p = _measure(big, label, owned=label)
+    assert p.missing_separate_fraction > 0.15
+    assert p.missing_fraction - p.missing_separate_fraction < 0.01
+    assert len(p.problems) == 2
+    assert "is a separate piece of bone that the surface does not reach" in p.problems[0]
+    assert "in the separate piece above (without it 0 %)" in p.problems[1]
+    assert "H0" not in p.problems[1] and "threshold" not in p.problems[1]
+    # half of the surface's own piece lost as well: that part is the thresholds' to answer
+    lost = big & (np.indices(shape)[2] < 18)
+    p = _measure(big & ~lost, label, owned=label)
+    assert "separate piece" in p.problems[0]
+    assert "part of the bone is missing. Use automatic thresholds" in p.problems[1]
+
+
 def test_a_generous_label_beyond_the_cts_edge_is_not_missing_bone():
     """A plate 2 voxels thick inside a label 8 voxels thick (a generous AI label of a thin
     blade): the label's deep part outside the plate is not missing bone where the plate's

@@ -113,6 +113,9 @@ class Plausibility:
     volume_ratio: float = 0.0
     segment_inside_fraction: float = 0.0
     missing_fraction: float = 0.0
+    # The part of ``missing_fraction`` in pieces of the segment the surface does not reach
+    # (``untouched_bone_ml``): a separate piece, not thresholds that miss the bone.
+    missing_separate_fraction: float = 0.0
     core_missing_fraction: float = 0.0
     extra_fraction: float = 0.0
     max_excursion_mm: float = 0.0
@@ -295,6 +298,7 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     if not deep.any():
         deep = part if part.any() else label
     missing = float((deep & ~inside).sum() / max(deep.sum(), 1))
+    missing_separate = float((deep & ~inside & left_out).sum() / max(deep.sum(), 1))
     core = deep & core_deep
     core_missing = float((core & ~inside).sum() / max(core.sum(), 1))
     extra = float((inside & in_image & (d_out > band_mm + coarseness)).sum() / max(in_n, 1))
@@ -303,7 +307,8 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         segment_ml=seg_n * voxel / 1000.0, surface_ml=volume_mm3 / 1000.0,
         volume_ratio=float(volume_mm3 / max(seg_n * voxel, 1e-9)),
         segment_inside_fraction=float((label & inside).sum() / max(seg_n, 1)),
-        missing_fraction=missing, core_missing_fraction=core_missing, extra_fraction=extra,
+        missing_fraction=missing, missing_separate_fraction=missing_separate,
+        core_missing_fraction=core_missing, extra_fraction=extra,
         max_excursion_mm=float(exc.max()) if len(exc) else 0.0,
         p95_excursion_mm=float(np.percentile(exc, 95)) if len(exc) else 0.0,
         neighbour_label_overlap=float((inside & neighbours).sum() / max(in_n, 1)),
@@ -354,19 +359,31 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str,
                 "max_excursion_mm": max_exc, "neighbour_core_overlap_max": MAX_CORE_OVERLAP,
                 "edge_support_min": MIN_EDGE_SUPPORT}
     problems = []
-    if p.missing_fraction > MAX_MISSING_FRACTION:
-        problems.append(
-            f"{name}: {100 * p.missing_fraction:.0f} % of what the segment clearly covers is "
-            f"outside the surface (at most {100 * MAX_MISSING_FRACTION:.0f} %): part of the bone "
-            f"is missing. {advice}, or check that the segment is this bone")
     untouched = p.untouched_bone_ml / max(p.segment_ml, 1e-9)
-    if untouched > MAX_UNTOUCHED_FRACTION:
+    separate = untouched > MAX_UNTOUCHED_FRACTION
+    if separate:
+        # First: a separate piece is the cause the user can act on, and it also counts in the
+        # missing fraction below.
         problems.append(
             f"{name}: {p.untouched_bone_ml:.1f} ml of the segment ({100 * untouched:.0f} %) is a "
             "separate piece of bone that the surface does not reach (one closed surface holds one "
             "piece): where the bone is cut by the image boundary into pieces, use a CT that "
             "contains more of it; otherwise split the segment into one segment per piece or "
             "remove the stray piece")
+    if p.missing_fraction > MAX_MISSING_FRACTION:
+        rest = p.missing_fraction - p.missing_separate_fraction
+        if separate and rest <= MAX_MISSING_FRACTION:
+            # The separate piece explains it: threshold advice would mislead.
+            problems.append(
+                f"{name}: {100 * p.missing_fraction:.0f} % of what the segment clearly covers is "
+                f"outside the surface (at most {100 * MAX_MISSING_FRACTION:.0f} %), "
+                f"{100 * p.missing_separate_fraction:.0f} % of it in the separate piece above "
+                f"(without it {100 * rest:.0f} %): correct the segment as said there")
+        else:
+            problems.append(
+                f"{name}: {100 * p.missing_fraction:.0f} % of what the segment clearly covers is "
+                f"outside the surface (at most {100 * MAX_MISSING_FRACTION:.0f} %): part of the "
+                f"bone is missing. {advice}, or check that the segment is this bone")
     if p.extra_fraction > MAX_EXTRA_FRACTION:
         problems.append(
             f"{name}: {100 * p.extra_fraction:.0f} % of the surface's volume lies more than "
