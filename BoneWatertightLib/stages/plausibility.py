@@ -11,7 +11,9 @@ stair-stepped by up to c; a rough user segment is smaller than the bone):
   across a joint) the CT decides, and that is not counted; pieces of the segment the surface does not
   touch at all (islands a rough segment has in the soft tissue) are left out and reported as
   ``untouched_segment_ml``, unless they are mostly bone this bone owns (``untouched_bone_ml``:
-  a left-out piece of the bone, which fails the run beyond 15 % of the segment);
+  a left-out piece of the bone, which fails the run beyond 15 % of the segment; the part of
+  ``missing_fraction`` inside such pieces is ``missing_separate_fraction``, and when it alone
+  takes the missing fraction over its bound the advice is about the segment, not thresholds);
 - ``extra_fraction``: of the surface's voxels, the fraction farther than band + c outside the
   segment (a fused neighbour, a leak);
 - ``max_excursion_mm``: the farthest a vertex lies outside the segment;
