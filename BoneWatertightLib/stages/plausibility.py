@@ -374,18 +374,16 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str,
             "remove the stray piece")
     if p.missing_fraction > MAX_MISSING_FRACTION:
         rest = p.missing_fraction - p.missing_separate_fraction
+        head = (f"{name}: {100 * p.missing_fraction:.0f} % of what the segment clearly covers is "
+                f"outside the surface (at most {100 * MAX_MISSING_FRACTION:.0f} %)")
         if separate and rest <= MAX_MISSING_FRACTION:
             # The separate piece explains it: threshold advice would mislead.
             problems.append(
-                f"{name}: {100 * p.missing_fraction:.0f} % of what the segment clearly covers is "
-                f"outside the surface (at most {100 * MAX_MISSING_FRACTION:.0f} %), "
-                f"{100 * p.missing_separate_fraction:.0f} % of it in the separate piece above "
-                f"(without it {100 * rest:.0f} %): correct the segment as said there")
+                f"{head}, {100 * p.missing_separate_fraction:.0f} % of it in the separate piece "
+                f"above (without it {100 * rest:.0f} %): correct the segment as said there")
         else:
-            problems.append(
-                f"{name}: {100 * p.missing_fraction:.0f} % of what the segment clearly covers is "
-                f"outside the surface (at most {100 * MAX_MISSING_FRACTION:.0f} %): part of the "
-                f"bone is missing. {advice}, or check that the segment is this bone")
+            problems.append(f"{head}: part of the bone is missing. {advice}, or check that the "
+                            "segment is this bone")
     if p.extra_fraction > MAX_EXTRA_FRACTION:
         problems.append(
             f"{name}: {100 * p.extra_fraction:.0f} % of the surface's volume lies more than "
