@@ -657,6 +657,13 @@ def initial_surface_stage(run: _Run, ws: Workspace, k: int, progress: Progress) 
 def threshold_windows(run: _Run, ws: Workspace, bone: BoneWork) -> None:
     """W_H0 and W_HT of the bone's owned voxels, and the paper's separation test."""
     params, own, d = run.params, ws.own, ws.d
+    plates = [m for m in own.info.get("merged_unlabelled", ())
+              if m.get("thin_plate_beyond_reach") and m["into"] == bone.k]
+    if plates:
+        bone.fallbacks.add("ownership", "a thin plate of unlabelled bone beyond the segment's reach "
+                           "but inside its span, continuing this bone without a joint space, was "
+                           f"taken in as this bone's ({sum(m['ml'] for m in plates):.2f} ml; the "
+                           "segment missed it)", len(plates), "pieces")
     with timed(bone.times, "threshold"):
         bone.masks = bone_masks(ws.ct_f, own.owner, own.cores, ws.labels, bone.k, d, h0=ws.h0,
                                 theta_max=params.theta_max, coarseness=ws.prep.coarseness,

@@ -359,6 +359,45 @@ def test_enclosed_pieces_join_the_bone_whose_merged_pieces_surround_them():
                                       reach_mm=8.0, boxes=boxes) == []
 
 
+def test_a_thin_plate_between_the_labelled_parts_joins_the_bone_beyond_the_reach():
+    """A segment that misses the middle of a plate between its labelled parts (an AI label
+    of an iliac wing on thick slices): the unlabelled plate, beyond the merge's reach but thin
+    and inside the label's span, joins the bone and is recorded as a plate; a thick piece in
+    the same place (a neighbour's body), a thin one reaching beyond the label's span (a
+    neighbour's blade), and any plate without ``plate_depth_mm`` do not."""
+    shape = (12, 40, 40)
+    labels = np.zeros(shape, np.uint16)
+    # bone 1: a frame, the two arms (x < 8, x >= 32) joined along y < 6; plate between the arms
+    labels[:, :, :8] = 1
+    labels[:, :, 32:] = 1
+    labels[:, :6, :] = 1
+    ws = np.zeros(shape, np.int32)
+    ws[5:7, 6:36, 8:32] = 3                  # thin plate (2 voxels), up to 12 from the label
+    boxes = ndimage.find_objects(ws)
+    faces = {(1, 3): (200, 0)}
+    kw = dict(reach_mm=8.0, boxes=boxes)
+    plates: set = set()
+    out = ownership._enclosed_pieces(faces, [], [3], 2, ws, labels, 1.0,
+                                     plate_depth_mm=3.0, plates=plates, **kw)
+    assert [(p, a) for p, a, _, _ in out] == [(3, 1)] and plates == {3}
+    # no plate rule: beyond the reach, left out
+    assert ownership._enclosed_pieces(faces, [], [3], 2, ws, labels, 1.0,
+                                      **kw) == []
+    # thick (8 voxels): a neighbour's body, left out
+    thick = np.zeros(shape, np.int32)
+    thick[2:10, 6:36, 8:32] = 3
+    out = ownership._enclosed_pieces(faces, [], [3], 2, thick, labels, 1.0,
+                                     plate_depth_mm=3.0, reach_mm=8.0,
+                                     boxes=ndimage.find_objects(thick))
+    assert out == []
+    # thin, but reaching beyond the label's span (a neighbour's blade)
+    labels2 = labels.copy()
+    labels2[:, 20:, :] = 0                   # arms cut short: the plate reaches past them
+    out = ownership._enclosed_pieces(faces, [], [3], 2, ws, labels2, 1.0,
+                                     plate_depth_mm=3.0, **kw)
+    assert out == []
+
+
 # ---------------------------------------------------------------------------------- contacts
 
 def _grid_sphere(radius, centre):

@@ -749,8 +749,10 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     reach_mm = band_mm + MERGE_REACH_COARSENESS * coarseness + MERGE_REACH_MM
     merged = _merged_pieces(faces, ws, labels, n, range(other, other + n_pieces), spacing,
                             reach_mm=reach_mm, boxes=boxes)
+    plates: set = set()
     merged += _enclosed_pieces(faces, merged, range(other, other + n_pieces), n, ws, labels,
-                               spacing, reach_mm=reach_mm, boxes=boxes)
+                               spacing, reach_mm=reach_mm, boxes=boxes,
+                               plate_depth_mm=max(coarseness, spacing), plates=plates)
     ws[joint_space] = 0
     owner = _owners(ws, seg.regions, markers, labels, merged, boxes)
     merged_ids = {p for p, _, _, _ in merged}
@@ -778,7 +780,8 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             "unsupported": {int(k): v for k, v in seg.unsupported_info.items()},
             "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
                                    "contact_mm2": round(s, 1), "ml": round(merged_ml[p], 2),
-                                   "part_of_unlabelled_bone": p in foreign}
+                                   "part_of_unlabelled_bone": p in foreign,
+                                   "thin_plate_beyond_reach": p in plates}
                                   for p, a, f, s in merged]}
     if progress:
         progress(1.0, "ownership done")
@@ -1001,7 +1004,8 @@ def _within_reach(piece: int, a: int, ws, labels, spacing: float, reach_mm: floa
 
 
 def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spacing: float,
-                     reach_mm: float, boxes: list) -> list:
+                     reach_mm: float, boxes: list, plate_depth_mm: float = 0.0,
+                     plates: set | None = None) -> list:
     """Unlabelled pieces that the first merge (:func:`_merged_pieces`) left out but that lie
     enclosed in one bone's merged bone - a crumb of the bone's own cortex between its merged
     pieces that touches the bone itself over too little (the trochanter of a femur whose rough
@@ -1013,10 +1017,14 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
     every contact it has outside itself is with a or with pieces merged into a, a valley shows
     on less than OWN_MAX_VALLEY_FRACTION of those contacts (and on less than
     MERGE_MAX_VALLEY_FRACTION of its direct contact with a), and each of its pieces lies within
-    ``reach_mm`` of a's label. A cluster that fails is no candidate any more, so the clusters
-    touching it fail in turn: nothing joins that is connected to unlabelled bone left out (a
-    neighbour the segment does not label). [(piece, bone, valley fraction, contact mm^2)] as
-    :func:`_merged_pieces`."""
+    ``reach_mm`` of a's label - or is a thin plate within the label's span
+    (:func:`_plate_in_span`, thinner than ``plate_depth_mm`` deep: a plate the CT barely
+    resolves, which a coarse or AI segment leaves out between its labelled parts; left out, it
+    became a hole in the surface that the segment does not have). A cluster that fails is no
+    candidate any more, so the clusters touching it fail in turn: nothing joins that is
+    connected to unlabelled bone left out (a neighbour the segment does not label).
+    [(piece, bone, valley fraction, contact mm^2)] as :func:`_merged_pieces`; the pieces that
+    joined as such a plate (beyond the reach) are added to ``plates``."""
     area = spacing ** 2
     into = {p: a for p, a, _, _ in merged}
     cand = {p for p in pieces if p not in into and p <= len(boxes) and boxes[p - 1] is not None}
@@ -1025,6 +1033,7 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
         touching.setdefault(a, []).append((b, tot, vis))
         touching.setdefault(b, []).append((a, tot, vis))
     reach_ok: dict = {}
+    hulls: dict = {}
     verdict: dict = {}
     changed = True
     while changed and cand:
@@ -1052,9 +1061,12 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
                 (bone,) = bones
                 for p in sorted(cluster):
                     if (p, bone) not in reach_ok:
-                        reach_ok[(p, bone)] = _within_reach(p, bone, ws, labels, spacing,
-                                                            reach_mm, boxes)
-                    ok = ok and reach_ok[(p, bone)]
+                        reach_ok[(p, bone)] = (
+                            _within_reach(p, bone, ws, labels, spacing, reach_mm, boxes)
+                            or ("plate" if plate_depth_mm > 0 and _plate_in_span(
+                                p, bone, ws, labels, spacing, plate_depth_mm, boxes, hulls)
+                                else False))
+                    ok = ok and bool(reach_ok[(p, bone)])
             if ok:
                 verdict[frozenset(cluster)] = (bone, vis / tot, tot * area)
             else:
@@ -1064,7 +1076,40 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
     out = []
     for cluster, (bone, frac, contact) in verdict.items():
         out += [(p, bone, frac, contact) for p in sorted(cluster)]
+        if plates is not None:
+            plates.update(p for p in cluster if reach_ok[(p, bone)] == "plate")
     return sorted(out)
+
+
+def _plate_in_span(piece: int, a: int, ws, labels, spacing: float, max_depth_mm: float,
+                   boxes: list, hulls: dict) -> bool:
+    """Is unlabelled piece ``piece`` a thin plate inside label ``a``'s span: no voxel deeper
+    than ``max_depth_mm`` inside it (it is nowhere thicker than about twice the CT's coarseness)
+    and every voxel inside the convex hull of a's label (grown by one voxel)? A neighbouring
+    bone is thicker somewhere (a body, a head, a joint's rim) or reaches beyond the bone it
+    touches; a plate that a segment missed between its labelled parts does neither.
+    ``hulls`` caches the hull's planes per label."""
+    box = boxes[piece - 1]
+    m = ws[box] == piece
+    if distance_inside(np.pad(m, 1)).max() * spacing > max_depth_mm:
+        return False
+    if a not in hulls:
+        lab = labels == a
+        # The hull of the label's outer voxels is the label's hull.
+        shell = lab & ~ndimage.binary_erosion(lab, SIX)
+        pts = np.argwhere(shell).astype(float)
+        try:
+            from scipy.spatial import ConvexHull
+
+            hulls[a] = ConvexHull(pts).equations if len(pts) >= 4 else None
+        except Exception:  # noqa: BLE001 - a flat or degenerate label spans no volume
+            hulls[a] = None
+    eq = hulls[a]
+    if eq is None:
+        return False
+    q = np.argwhere(m) + np.array([s.start for s in box])
+    # Plane offsets are in voxels: inside (grown by one voxel) when every offset <= 1.
+    return bool(np.all(q @ eq[:, :3].T + eq[:, 3] <= 1.0))
 
 
 def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,

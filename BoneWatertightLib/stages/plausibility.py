@@ -196,7 +196,8 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     added : (z, y, x) bool array, optional
         Bone outside every segment merged into this bone as its own (:attr:`.ownership.
         Ownership.added`: it continues the bone without a joint space): how much of it the
-        surface holds is ``added_bone_ml``.
+        surface holds is ``added_bone_ml``; the surface's excursion beyond the segment
+        (``max_excursion_mm``, ``extra_fraction``) is measured from the segment and it.
     others_owned : (z, y, x) bool array, optional
         Bone that the ownership gave to another bone (a label reaching across a joint into
         its neighbour): not counted as missing.
@@ -221,6 +222,10 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         unsupported_ml = float(unsupported.sum() * spacing ** 3 / 1000.0)
         label = label & ~unsupported
     label = label & in_image
+    # Bone merged as this bone's own continues it without a joint space (a part the segment
+    # missed, such as a thin plate between its labelled parts): how far the surface reaches
+    # beyond the segment is measured from the segment and that bone together.
+    spanned = label if added is None else label | (added & in_image)
     # Depth in the segment, from a voxel's centre to the label's boundary (half a voxel less
     # than the distance to the nearest centre outside), on the working grid: measured on the
     # blocks below, a block at the label's edge counted as a block deep (its centre lies half
@@ -239,6 +244,7 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         deep_enough = _block_majority(deep_enough, f)
         core_deep = _block_majority(core_deep, f)
         label = _block_majority(label, f)
+        spanned = _block_majority(spanned, f)
         inside = _block_majority(inside, f)
         neighbours = _block_majority(neighbours, f)
         neighbour_cores = _block_majority(neighbour_cores, f)
@@ -254,10 +260,11 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         if edge_points is not None:
             edge_points = edge_points - 0.5 * (spacing - spacing / f)
         label &= in_image
+        spanned |= label
     voxel = spacing ** 3
     seg_n = int(label.sum())
     in_n = int(inside.sum())
-    d_out = distance_outside(label) * spacing
+    d_out = distance_outside(spanned) * spacing
     # Pieces of the segment that the surface does not touch at all (islands of a rough segment
     # in the soft tissue) are reported, not counted as missing bone.
     pieces, n_pieces = ndimage.label(label, structure=np.ones((3, 3, 3), bool))
