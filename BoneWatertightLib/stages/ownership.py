@@ -1064,8 +1064,8 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
                         reach_ok[(p, bone)] = (
                             _within_reach(p, bone, ws, labels, spacing, reach_mm, boxes)
                             or ("plate" if plate_depth_mm > 0 and _plate_in_span(
-                                p, bone, ws, labels, spacing, plate_depth_mm, boxes, hulls)
-                                else False))
+                                p, bone, ws, labels, spacing, plate_depth_mm, boxes, hulls,
+                                margin_mm=plate_depth_mm) else False))
                     ok = ok and bool(reach_ok[(p, bone)])
             if ok:
                 verdict[frozenset(cluster)] = (bone, vis / tot, tot * area)
@@ -1082,10 +1082,12 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
 
 
 def _plate_in_span(piece: int, a: int, ws, labels, spacing: float, max_depth_mm: float,
-                   boxes: list, hulls: dict) -> bool:
+                   boxes: list, hulls: dict, margin_mm: float = 0.0) -> bool:
     """Is unlabelled piece ``piece`` a thin plate inside label ``a``'s span: no voxel deeper
     than ``max_depth_mm`` inside it (it is nowhere thicker than about twice the CT's coarseness)
-    and every voxel inside the convex hull of a's label (grown by one voxel)? A neighbouring
+    and every voxel inside the convex hull of a's label grown by ``margin_mm`` (a coarse label's
+    voxels outline the bone only to within their size, and the blurred plate's edge reaches
+    beyond the bone's; at least one voxel)? A neighbouring
     bone is thicker somewhere (a body, a head, a joint's rim) or reaches beyond the bone it
     touches; a plate that a segment missed between its labelled parts does neither.
     ``hulls`` caches the hull's planes per label."""
@@ -1108,8 +1110,8 @@ def _plate_in_span(piece: int, a: int, ws, labels, spacing: float, max_depth_mm:
     if eq is None:
         return False
     q = np.argwhere(m) + np.array([s.start for s in box])
-    # Plane offsets are in voxels: inside (grown by one voxel) when every offset <= 1.
-    return bool(np.all(q @ eq[:, :3].T + eq[:, 3] <= 1.0))
+    # Plane offsets are in voxels.
+    return bool(np.all(q @ eq[:, :3].T + eq[:, 3] <= max(1.0, margin_mm / spacing)))
 
 
 def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
