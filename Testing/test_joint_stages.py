@@ -326,6 +326,21 @@ def test_foreign_pieces_are_the_merged_ones_connected_to_a_piece_not_merged():
     assert ownership._foreign_pieces(faces, set(), {7}) == set()
 
 
+def test_a_neighbours_fragment_merged_into_the_bone_carries_its_contact_with_that_neighbour():
+    """Bone 1 touches unlabelled piece 4 over 100 voxel faces (a joint space on 60 of them) and
+    a fragment of it, piece 3, merged into bone 1 (no valley between them), which meets the
+    rest of piece 4 over 80 faces without a valley: the bone now meets the unlabelled bone over
+    180 faces, 60 of them seen; an own merged piece (5, touching only bone 1) adds nothing, and
+    without fragments the contact is the direct one alone, as before."""
+    faces = {(1, 3): (50, 0), (3, 4): (80, 0), (1, 4): (100, 60), (1, 5): (30, 0), (1, 2): (40, 10)}
+    base = {(c["a"], c["b"]): (c["contact_area_mm2"], c["valley_seen_fraction"])
+            for c in ownership._pair_contacts(faces, 2, 3, {3, 5}, 1.0)}
+    assert base == {(1, 3): (100, 0.6), (1, 2): (40, 0.25)}
+    out = {(c["a"], c["b"]): (c["contact_area_mm2"], c["valley_seen_fraction"])
+           for c in ownership._pair_contacts(faces, 2, 3, {3, 5}, 1.0, fragments={3: 1})}
+    assert out == {(1, 3): (180, pytest.approx(60 / 180)), (1, 2): (40, 0.25)}
+
+
 def test_enclosed_pieces_join_the_bone_whose_merged_pieces_surround_them():
     """Unlabelled crumbs that touch the bone over too little to be merged themselves but lie
     between pieces merged into it, without valleys, within reach of its label, join the bone

@@ -770,7 +770,8 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     del kind
     sizes = np.bincount(ws[in_merged], minlength=max(merged_ids, default=0) + 1)
     merged_ml = {p: float(sizes[p] * spacing ** 3 / 1000.0) for p in merged_ids}
-    contacts = _pair_contacts(faces, n, other, merged_ids, spacing ** 2)
+    contacts = _pair_contacts(faces, n, other, merged_ids, spacing ** 2,
+                              fragments={p: a for p, a, _, _ in merged if p in foreign})
     info = {"core_depth_mm": {int(k): float(v) for k, v in seg.core_depth.items()},
             "contact_zone_mm": r_contact, "valley_quantum_hu": quantum, "label_level_hu": t_low,
             "foreground_voxels": int(fg.sum()), "unlabelled_pieces": n_pieces,
@@ -1174,14 +1175,27 @@ def _owners(ws, regions: dict, markers, labels, merged: list, boxes: list) -> np
     return owner
 
 
-def _pair_contacts(faces: dict, n: int, other: int, merged_ids: set, area: float) -> list:
+def _pair_contacts(faces: dict, n: int, other: int, merged_ids: set, area: float,
+                   fragments: dict | None = None) -> list:
     """Per pair of labels (the unlabelled pieces pooled as ``other``): contact area (mm^2)
-    and the fraction of it where a joint space is seen."""
+    and the fraction of it where a joint space is seen. ``fragments`` ({piece: label}): merged
+    pieces that are a neighbour's fragments (:func:`_foreign_pieces`); where one meets the rest
+    of that unlabelled neighbour, the bone it was merged into meets it (the merge moved the
+    bone's boundary there: a femur whose region cut a fragment off an unlabelled cup touches
+    the cup beyond the fragment too)."""
+    fragments = fragments or {}
     pooled: dict = {}
     for (a, b), (tot, vis) in faces.items():
-        a2 = a if a <= n else other
-        b2 = b if b <= n else other
-        if a2 == b2 or (b in merged_ids) or (a in merged_ids):
+        if a in fragments and b > n and b not in merged_ids:
+            a2, b2 = fragments[a], other
+        elif b in fragments and a > n and a not in merged_ids:
+            a2, b2 = fragments[b], other
+        elif (b in merged_ids) or (a in merged_ids):
+            continue
+        else:
+            a2 = a if a <= n else other
+            b2 = b if b <= n else other
+        if a2 == b2:
             continue
         key = (min(a2, b2), max(a2, b2))
         t0, v0 = pooled.get(key, (0, 0))
