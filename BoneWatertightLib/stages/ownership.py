@@ -1088,10 +1088,9 @@ def _plate_in_span(piece: int, a: int, ws, labels, spacing: float, max_depth_mm:
     than ``max_depth_mm`` inside it (it is nowhere thicker than about twice the CT's coarseness)
     and every voxel inside the convex hull of a's label grown by ``margin_mm`` (a coarse label's
     voxels outline the bone only to within their size, and the blurred plate's edge reaches
-    beyond the bone's; at least one voxel)? A neighbouring
-    bone is thicker somewhere (a body, a head, a joint's rim) or reaches beyond the bone it
-    touches; a plate that a segment missed between its labelled parts does neither.
-    ``hulls`` caches the hull's planes per label."""
+    beyond the bone's; at least one voxel)? A neighbouring bone is thicker somewhere (a body,
+    a head, a joint's rim) or reaches beyond the bone it touches; a plate that a segment missed
+    between its labelled parts does neither. ``hulls`` caches the hull's planes per label."""
     box = boxes[piece - 1]
     m = ws[box] == piece
     if distance_inside(np.pad(m, 1)).max() * spacing > max_depth_mm:
