@@ -424,6 +424,8 @@ def _u_with_a_plate(ct_mm=3.0, fine=0.25):
     a 3 mm CT (Gaussian PSF, block average, noise 15 HU), and an AI-style label of the U alone
     (majority on the CT grid): the plate's middle lies 30 mm from the label. Returns the CT, the
     label and the plate's centre (physical mm)."""
+    from scipy import ndimage
+
     size, height, zc = 96.0, 36.0, 16.5                     # the plate on a CT slice's centre
     nx, nz = int(size / fine), int(height / fine)
     c = (np.arange(max(nx, nz)) + 0.5) * fine
@@ -434,14 +436,13 @@ def _u_with_a_plate(ct_mm=3.0, fine=0.25):
     plate = (np.abs(Z - zc) <= 0.6) & (Y >= 12) & (Y <= 84) & (X >= 12) & (X <= 84) & ~u
     hu = np.full(u.shape, 40.0, np.float32)
     hu[u] = 300.0
-    from scipy import ndimage
-
     hu[u & ~ndimage.binary_erosion(u, iterations=int(1.5 / fine))] = 1400.0
     hu[plate] = 1400.0
     hu = ndimage.gaussian_filter(hu, sigma=(1.2 / fine, 0.6 / fine, 0.6 / fine))
     f = int(ct_mm / fine)
     blocks = (nz // f, f, nx // f, f, nx // f, f)
-    ct = hu.reshape(blocks).mean(axis=(1, 3, 5)) + np.random.default_rng(0).normal(0, 15, (nz // f, nx // f, nx // f))
+    ct = hu.reshape(blocks).mean(axis=(1, 3, 5))
+    ct += np.random.default_rng(0).normal(0, 15, ct.shape)
     label = u.reshape(blocks).mean(axis=(1, 3, 5)) >= 0.5
     ct_img = sitk.GetImageFromArray(ct.astype(np.int16))
     ct_img.SetSpacing((ct_mm,) * 3)

@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import ConvexHull
 
 from .threshold import SIX, bbox_slices, segment_region
 from ..mesh.distance import distance_inside, distance_outside
@@ -1035,6 +1036,7 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
         touching.setdefault(b, []).append((a, tot, vis))
     reach_ok: dict = {}
     hulls: dict = {}
+    as_plate: set = set()
     verdict: dict = {}
     changed = True
     while changed and cand:
@@ -1062,12 +1064,14 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
                 (bone,) = bones
                 for p in sorted(cluster):
                     if (p, bone) not in reach_ok:
-                        reach_ok[(p, bone)] = (
-                            _within_reach(p, bone, ws, labels, spacing, reach_mm, boxes)
-                            or ("plate" if plate_depth_mm > 0 and _plate_in_span(
-                                p, bone, ws, labels, spacing, plate_depth_mm, boxes, hulls,
-                                margin_mm=plate_depth_mm) else False))
-                    ok = ok and bool(reach_ok[(p, bone)])
+                        reach_ok[(p, bone)] = _within_reach(p, bone, ws, labels, spacing,
+                                                            reach_mm, boxes)
+                        if (not reach_ok[(p, bone)] and plate_depth_mm > 0
+                                and _plate_in_span(p, bone, ws, labels, spacing, plate_depth_mm,
+                                                   boxes, hulls, margin_mm=plate_depth_mm)):
+                            reach_ok[(p, bone)] = True
+                            as_plate.add(p)
+                    ok = ok and reach_ok[(p, bone)]
             if ok:
                 verdict[frozenset(cluster)] = (bone, vis / tot, tot * area)
             else:
@@ -1078,7 +1082,7 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
     for cluster, (bone, frac, contact) in verdict.items():
         out += [(p, bone, frac, contact) for p in sorted(cluster)]
         if plates is not None:
-            plates.update(p for p in cluster if reach_ok[(p, bone)] == "plate")
+            plates.update(cluster & as_plate)
     return sorted(out)
 
 
@@ -1097,13 +1101,14 @@ def _plate_in_span(piece: int, a: int, ws, labels, spacing: float, max_depth_mm:
         return False
     if a not in hulls:
         lab = labels == a
-        # The hull of the label's outer voxels is the label's hull.
+        sl = bbox_slices(lab, 0)
+        lab = lab[sl]
+        # The hull of the label's outer voxels is the label's hull (eroded on its own box,
+        # whose edge voxels are outer ones).
         shell = lab & ~ndimage.binary_erosion(lab, SIX)
-        pts = np.argwhere(shell).astype(float)
+        pts = np.argwhere(shell) + np.array([s.start for s in sl])
         try:
-            from scipy.spatial import ConvexHull
-
-            hulls[a] = ConvexHull(pts).equations if len(pts) >= 4 else None
+            hulls[a] = ConvexHull(pts.astype(float)).equations if len(pts) >= 4 else None
         except Exception:  # noqa: BLE001 - a flat or degenerate label spans no volume
             hulls[a] = None
     eq = hulls[a]
