@@ -614,3 +614,26 @@ def test_inside_mask_of_an_open_surface_falls_back_to_the_stencil():
                           _stencil_mask(Surface(v, opened), (40, 40, 40), 0.5, (0.0, 0.0, 0.0)))
     closed = inside_mask(Surface(v, f), (40, 40, 40), 0.5)
     assert 4 / 3 * np.pi * 5.0 ** 3 * 0.97 < closed.sum() * 0.125 < 4 / 3 * np.pi * 5.0 ** 3
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_intersection_batches_tested_on_threads_are_those_of_one_thread(monkeypatch, threads):
+    """The narrow phase of the next batches on threads finds the same pairs, also when the
+    search stops at ``max_pairs``."""
+    from BoneWatertightLib import threads as threads_module
+    from BoneWatertightLib.mesh import checks
+
+    monkeypatch.setattr(threads_module.os, "cpu_count", lambda: threads)
+    monkeypatch.setattr(checks, "_PAIR_BATCH", 500)  # many batches
+    v, f = icosphere(level=4, radius=10.0)
+    v = np.asarray(v, np.float64).copy()
+    rng = np.random.default_rng(threads)
+    spikes = rng.choice(len(v), 80, replace=False)
+    v[spikes] += rng.normal(0.0, 3.0, (80, 3))  # pushed through their neighbours
+    monkeypatch.setattr(checks, "CHECK_THREADS", 1)
+    plain = find_self_intersections(v, f)
+    first = find_self_intersections(v, f, max_pairs=5)
+    monkeypatch.setattr(checks, "CHECK_THREADS", 2)
+    assert len(plain) > 10
+    assert np.array_equal(find_self_intersections(v, f), plain)
+    assert np.array_equal(find_self_intersections(v, f, max_pairs=5), first)

@@ -286,3 +286,38 @@ def test_solve_spd_three_columns_at_once_is_scipys_cg_per_column():
         residual = np.linalg.norm(A @ got[:, c] - rhs[:, c])
         assert residual <= 1.01 * operators.CG_RTOL * np.linalg.norm(rhs[:, c])
         assert np.abs(got[:, c] - exact[:, c]).max() <= 1e-4 * np.abs(exact[:, c]).max()
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_unsupported_parts_on_slabs_and_shifted_slices_equal_the_plain_filters(monkeypatch,
+                                                                              threads):
+    """The support test's smoothing on slabs and its six-neighbour maximum by shifted slices
+    give the plain filters' values and the same parts."""
+    from BoneWatertightLib import threads as threads_module
+    from BoneWatertightLib.stages import ownership
+
+    monkeypatch.setattr(threads_module.os, "cpu_count", lambda: threads)
+    rng = np.random.default_rng(5 + threads)
+    parts, _ = ndimage.label(ndimage.gaussian_filter(rng.random((37, 21, 26)), 1.0) > 0.55,
+                             structure=ownership.SIX)
+    assert parts.max() > 3
+    assert np.array_equal(ownership._six_max(parts), ndimage.maximum_filter(
+        parts, footprint=ownership.SIX, mode="constant", cval=0))
+    # A label with soft-tissue blobs: two outside the bone (unsupported), a marrow inside it.
+    ct = np.full((40, 30, 30), 40.0, np.float32)
+    ct[8:32, 6:24, 6:24] = 900.0
+    ct[12:28, 10:20, 10:20] = 30.0  # marrow, walled by cortex
+    label = np.zeros(ct.shape, bool)
+    label[8:32, 6:24, 6:24] = True
+    label[14:20, 24:29, 12:18] = True  # false blob beside the bone
+    core = ndimage.binary_erosion(label, iterations=2)
+    core[14:20, 20:27, 12:18] = True
+    sigma = max(1.0 / 0.5, 0.5)
+    soft = ndimage.gaussian_filter(ct, sigma=sigma, mode="nearest") < 200.0
+    assert np.array_equal(
+        ownership._in_slabs(lambda p: ndimage.gaussian_filter(p, sigma=sigma, mode="nearest"),
+                            ct, int(4.0 * sigma + 0.5)) < 200.0, soft)
+    bad, pieces = ownership.unsupported_parts(ct, label, core, 0.5, level=200.0,
+                                              smooth_mm=1.0)
+    assert len(pieces) == 1 and bad[16, 27, 15] and not bad[20, 15, 15]
+

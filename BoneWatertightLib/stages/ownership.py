@@ -190,8 +190,9 @@ def unsupported_parts(ct: np.ndarray, label: np.ndarray, core: np.ndarray, spaci
         Per unsupported part: ``voxels`` and ``support`` (the fraction of its shell that is
         not soft tissue).
     """
-    soft = ndimage.gaussian_filter(ct.astype(np.float32), sigma=max(smooth_mm / spacing, 0.5),
-                                   mode="nearest") < level
+    sigma = max(smooth_mm / spacing, 0.5)
+    soft = _in_slabs(lambda part: ndimage.gaussian_filter(part, sigma=sigma, mode="nearest"),
+                     ct.astype(np.float32), int(4.0 * sigma + 0.5)) < level
     cand = label & soft
     if not (cand & core).any():
         return np.zeros(label.shape, bool), []
@@ -199,7 +200,7 @@ def unsupported_parts(ct: np.ndarray, label: np.ndarray, core: np.ndarray, spaci
     reach = np.unique(parts[cand & core])
     reach = reach[reach > 0]
     # Each shell voxel (not in any part, 6-adjacent to one) counts for the part it touches.
-    shell_of = ndimage.maximum_filter(parts, footprint=SIX, mode="constant", cval=0)
+    shell_of = _six_max(parts)
     shell = (parts == 0) & (shell_of > 0)
     total = np.bincount(shell_of[shell], minlength=n + 1)
     bone = np.bincount(shell_of[shell & ~soft], minlength=n + 1)
@@ -210,6 +211,19 @@ def unsupported_parts(ct: np.ndarray, label: np.ndarray, core: np.ndarray, spaci
     pieces = [{"voxels": int(size[i]), "support": round(float(support[i]), 3)}
               for i in np.flatnonzero(bad)]
     return bad[parts], pieces
+
+
+def _six_max(a: np.ndarray) -> np.ndarray:
+    """The maximum of each voxel and its six face neighbours of a non-negative (z, y, x) array
+    (0 beyond the edges): ``maximum_filter(a, footprint=SIX, mode="constant", cval=0)`` by
+    shifted slices, measured 3x faster."""
+    out = a.copy()
+    for ax in range(a.ndim):
+        hi = tuple(slice(1, None) if k == ax else slice(None) for k in range(a.ndim))
+        lo = tuple(slice(None, -1) if k == ax else slice(None) for k in range(a.ndim))
+        np.maximum(out[hi], a[lo], out=out[hi])
+        np.maximum(out[lo], a[hi], out=out[lo])
+    return out
 
 
 def valley_map(ct: np.ndarray, spacing: float, radius_mm: float) -> np.ndarray:
