@@ -62,6 +62,7 @@ from .stages.refine import refine_to_edges
 from .stages.threshold import (BoneMasks, bone_masks, boundary_voxels, crossing_points,
                                erosions_to_separate, voxel_points)
 from .stages.visible import visible_points
+from .threads import background
 
 # The filter's percentile is taken within this distance (mm) of the targets.
 FILTER_REGION_MM = 3.0
@@ -760,7 +761,6 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     params, d, masks, own, k = run.params, ws.d, bone.masks, ws.own, bone.k
     origin = masks.origin
     edge = params.edge_length if params.edge_length is not None else d
-    normals = mask_normals(masks.solid_h0, points, d)
     # M0 joins what Poisson at depth <= 7 cannot resolve (a plate of a few voxels in a long
     # bone) and, where it then has tunnels its segment does not have, the segment (box
     # coordinates).
@@ -769,13 +769,25 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     if own.unsupported is not None:
         trusted &= ~own.unsupported[masks.box]
     # The segment's tunnels counted at its own resolution (its stair steps and holes smaller
-    # than that are no tunnels of the bone: plausibility.segment_genus); the fill takes its
-    # material from the segment itself (smoothing would thin its thin parts away); tunnels it
-    # cannot close, the thresholded bone may (W_HT holds W_H0 and the thin plates).
+    # than that are no tunnels of the bone: plausibility.segment_genus), on a thread while the
+    # normals and the carved region are computed (they do not depend on it).
+    genus = background(_plaus.segment_genus, trusted, d, ws.prep.coarseness,
+                       name="segment-genus")
+    normals = mask_normals(masks.solid_h0, points, d)
+    # Where neither the CT nor the segment has bone, M0 has none either: Poisson closes over
+    # what the views do not see into (a curved canal, a deep notch).
+    bone_ct = masks.occupancy | masks.w_ht | masks.w_h0
+    lumen = ws.ct_f[masks.box] < own.info["label_level_hu"]
+    carve = _poisson.carve_region(
+        trusted, bone_ct, d, segment_margin_mm=CARVE_SEGMENT_COARSENESS * ws.prep.coarseness + d,
+        bone_margin_mm=CARVE_BONE_MM + d, soft_tissue=lumen)
+    # The fill takes its material from the segment itself (smoothing would thin its thin parts
+    # away); tunnels it cannot close, the thresholded bone may (W_HT holds W_H0 and the thin
+    # plates).
     fusion = _poisson.Fusion(label=trusted,
                              label_origin=np.zeros(3), label_spacing=d,
-                             genus=_plaus.segment_genus(trusted, d, ws.prep.coarseness),
-                             close_mm=(ws.prep.coarseness,), bone=masks.w_ht)
+                             genus=genus.result(),
+                             close_mm=(ws.prep.coarseness,), bone=masks.w_ht, carve=carve)
     # A thin process of the bone's own (a sacral tip at 3 mm) that Poisson at depth 7
     # detaches as a small component is joined back from the bone the thresholds hold -
     # inside the image: beyond a cap plane the grid only continues the border slice.
@@ -783,13 +795,6 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     fusion.solid = (masks.occupancy & _plaus.image_mask(masks.box, planes, d) if planes
                     else masks.occupancy)
     fusion.solid_reach_mm = ws.prep.coarseness
-    # Where neither the CT nor the segment has bone, M0 has none either: Poisson closes over
-    # what the views do not see into (a curved canal, a deep notch).
-    bone_ct = masks.occupancy | masks.w_ht | masks.w_h0
-    lumen = ws.ct_f[masks.box] < own.info["label_level_hu"]
-    fusion.carve = _poisson.carve_region(
-        trusted, bone_ct, d, segment_margin_mm=CARVE_SEGMENT_COARSENESS * ws.prep.coarseness + d,
-        bone_margin_mm=CARVE_BONE_MM + d, soft_tissue=lumen)
     plates = bone.plates
     if plates is not None and plates.n:
         fusion.plates = lambda shape, lo, h: plates.field(shape, np.asarray(lo) + origin, h)
