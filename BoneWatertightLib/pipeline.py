@@ -605,7 +605,8 @@ def ownership_stage(run: _Run, ws: Workspace) -> None:
             ws.ct_f, ws.labels, len(ws.prep.values), ws.d, h0=ws.h0, ht=ws.ht,
             theta_max=params.theta_max, soft=th["soft_tissue_hu"],
             contrast=max(th["cortex_hu"] - th["soft_tissue_hu"], 1.0),
-            coarseness=ws.prep.coarseness, band_mm=ws.band, progress=sub)
+            coarseness=ws.prep.coarseness, band_mm=ws.band,
+            ct_resolution=float(max(ws.prep.ct_spacing)), progress=sub)
 
 
 def bone_schedule(ws: Workspace, max_memory_gb: float) -> tuple:

@@ -22,7 +22,10 @@ from typing import Optional
 import numpy as np
 
 # A fit is trusted when its robust RMS distance to the seen mid-surface points is at most this
-# many voxels (the mid-surface voxels are on the grid: a perfect fit leaves about 0.3 voxel).
+# many voxels (the mid-surface voxels are on the grid: a perfect fit leaves about 0.3 voxel) -
+# voxels of the CT where it is coarser than the grid: the two bones' borders, between which the
+# mid-surface lies, are located no better than the CT resolves them, and across a curved joint
+# every direction, the slices' too, is someone's normal.
 FIT_MAX_RMS_VOXELS = 0.75
 # At least this many mid-surface points, spread over at least this many mm (both directions
 # of the fitted surface), or the fit is not tried.
@@ -217,7 +220,8 @@ def _frame(axis: np.ndarray) -> np.ndarray:
     return np.vstack([e1, np.cross(axis, e1)])
 
 
-def fit_joint_surface(points: np.ndarray, voxel: float) -> Optional[JointSurface]:
+def fit_joint_surface(points: np.ndarray, voxel: float, resolution: float = 0.0,
+                      reasons: Optional[list] = None) -> Optional[JointSurface]:
     """Fit a plane or a sphere to the mid-surface points of a seen joint space.
 
     Parameters
@@ -226,6 +230,11 @@ def fit_joint_surface(points: np.ndarray, voxel: float) -> Optional[JointSurface
         Mid-surface points of the seen joint space (mm).
     voxel : float
         The grid's voxel size (mm): the scale of the points' own scatter.
+    resolution : float
+        The CT's coarsest spacing (mm): where it is coarser than the grid, the scale of the
+        scatter instead (see FIT_MAX_RMS_VOXELS).
+    reasons : list, optional
+        Gets one sentence when no fit is returned: why.
 
     Returns
     -------
@@ -235,14 +244,19 @@ def fit_joint_surface(points: np.ndarray, voxel: float) -> Optional[JointSurface
         neither model fits within FIT_MAX_RMS_VOXELS voxels (an irregular joint: the caller
         keeps what the labels say). ``sign`` is +1; orient it with the bones' sides.
     """
+    def refuse(why):
+        if reasons is not None:
+            reasons.append(why)
+        return None
+
     p = np.asarray(points, float)
     if len(p) < FIT_MIN_POINTS:
-        return None
+        return refuse(f"fewer than {FIT_MIN_POINTS} points of seen joint space")
     c0, n0, _ = _plane(p)
     q0 = (p - c0) @ _frame(n0).T
     extent = q0.max(axis=0) - q0.min(axis=0)
     if extent.min() < FIT_MIN_EXTENT_MM:
-        return None
+        return refuse(f"the seen joint space spans less than {FIT_MIN_EXTENT_MM:g} mm")
     plane = _robust(_plane, _plane_distance, p, voxel)
     sphere = _robust(_sphere, _sphere_distance, p, voxel)
     chosen = None
@@ -252,11 +266,15 @@ def fit_joint_surface(points: np.ndarray, voxel: float) -> Optional[JointSurface
             chosen = ("sphere", sphere)
     if chosen is None and plane is not None:
         chosen = ("plane", plane)
-    if chosen is None or chosen[1][1] > FIT_MAX_RMS_VOXELS * voxel:
-        return None
+    limit = FIT_MAX_RMS_VOXELS * max(voxel, resolution)
+    if chosen is None:
+        return refuse("neither a plane nor a sphere could be fitted")
+    if chosen[1][1] > limit:
+        return refuse(f"irregular: the best {chosen[0]} leaves an RMS of {chosen[1][1]:.2f} mm "
+                      f"(at most {limit:.2f} mm)")
     kind, (res, rms, keep) = chosen
     if keep.mean() < FIT_MIN_INLIERS:
-        return None
+        return refuse(f"the {kind} explains only {keep.mean():.0%} of the seen joint space")
     pts = p[keep]
     if kind == "sphere":
         c, r, _ = res
@@ -266,4 +284,4 @@ def fit_joint_surface(points: np.ndarray, voxel: float) -> Optional[JointSurface
         surf = JointSurface("plane", c, float("inf"), n, rms, int(keep.sum()))
     surf.points = pts
     surf.extent = float(extent.max())
-    return surf if surf.build_support() else None
+    return surf if surf.build_support() else refuse("no support could be built for the fit")

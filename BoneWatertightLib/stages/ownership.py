@@ -495,7 +495,8 @@ def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.n
 
 def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.ndarray,
                      regions: dict, n: int, spacing: float, *, quantum: float,
-                     radius_mm: float, reach_mm: float, margin_mm: float) -> list:
+                     radius_mm: float, reach_mm: float, margin_mm: float,
+                     resolution_mm: float = 0.0) -> list:
     """Carry the seen part of each joint over the part the slices hide (in place).
 
     Where thick slices run along a joint the CT shows no joint space and the flooding and the
@@ -536,13 +537,18 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         How far beyond the seen points (along the fitted surface) the fit is carried: the
         joint zone's reach, where the labels are not trusted either (a hidden part at the edge
         of a joint, beside a cup's rim, has seen joint space on one side only).
+    resolution_mm : float
+        The CT's coarsest spacing (mm): how closely a fit must follow the seen joint space
+        scales with it where it is coarser than the grid (jointfit.FIT_MAX_RMS_VOXELS).
 
     Returns
     -------
     list of dict
         Per pair with a fit: ``a``, ``b``, ``model`` (plane / sphere), ``rms_mm``,
         ``radius_mm``, ``points``, ``inliers``, ``agreement``, ``to_a`` / ``to_b`` (voxels
-        moved), ``used`` (False with a ``reason`` when the fit was not trusted).
+        moved), ``used`` (False with a ``reason`` when the fit was not trusted); per pair
+        whose seen joint space has enough points but no fit: ``model`` None and the
+        ``reason``.
     """
     from .jointfit import FIT_MIN_POINTS, fit_joint_surface
 
@@ -574,8 +580,13 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
             & (db <= radius_mm + spacing)
         offset = np.array([x.start for x in sl], float)
         pts = (np.argwhere(mid) + offset) * spacing
-        surf = fit_joint_surface(pts, spacing)
+        why: list = []
+        surf = fit_joint_surface(pts, spacing, resolution_mm, reasons=why)
         if surf is None:
+            if len(pts) >= FIT_MIN_POINTS:
+                out.append({"a": int(a), "b": int(b), "model": None, "rms_mm": None,
+                            "radius_mm": None, "points": int(len(pts)), "to_a": 0, "to_b": 0,
+                            "used": False, "reason": why[0] if why else "no fit"})
             continue
         rec = {"a": int(a), "b": int(b), "model": surf.kind, "rms_mm": round(surf.rms, 3),
                "radius_mm": round(surf.radius, 2) if np.isfinite(surf.radius) else None,
@@ -701,7 +712,8 @@ def _interfaces(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, spacing: float, 
 
 def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float, *,
                       h0: float, ht: float, theta_max: float, soft: float, contrast: float,
-                      coarseness: float, band_mm: float, progress=None) -> Ownership:
+                      coarseness: float, band_mm: float, ct_resolution: float = 0.0,
+                      progress=None) -> Ownership:
     """Assign the bone voxels of the working grid to the labels (see the module doc).
 
     Parameters
@@ -722,6 +734,8 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         How coarse the segmentation is (mm): its own voxel size or the CT's slice spacing.
     band_mm : float
         How far a bone may reach beyond its label (the region's dilation).
+    ct_resolution : float
+        The CT's coarsest spacing (mm), for the joint fits (:func:`carry_joint_fits`).
 
     Returns
     -------
@@ -751,7 +765,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
                                radius_mm=radius)
     fit_info = carry_joint_fits(ws, fg, ct, seg.cores, seg.regions, n, spacing,
                                 quantum=quantum, radius_mm=radius, reach_mm=r_contact + band_mm,
-                                margin_mm=r_contact)
+                                margin_mm=r_contact, resolution_mm=ct_resolution)
     # A visible joint space (cartilage between two cortices, below H0, in a valley of at least
     # SEEN_VALLEY_QUANTA quanta) is no bone: it joins no bone's W_HT (removed below, after the
     # contacts between the basins are measured).
