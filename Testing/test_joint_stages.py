@@ -1028,6 +1028,19 @@ def test_the_seen_part_of_a_joint_is_carried_over_the_hidden_pole(monkeypatch):
     assert (run().owner[pole] == 1).mean() < 0.2
 
 
+
+def test_a_joint_without_a_fit_is_reported_with_the_reason(monkeypatch):
+    """When no model follows the seen joint space closely enough, the pair is in the report
+    (no model, not used, why) and the labels decide the hidden pole."""
+    ct, labels, r, dz = _ball_in_cup()
+    monkeypatch.setattr(jointfit, "FIT_MAX_RMS_VOXELS", 0.01)
+    own = _ball_in_cup_ownership(ct, labels, 2)
+    (fit,) = own.info["joint_fits"]
+    assert fit["model"] is None and not fit["used"] and fit["points"] >= jointfit.FIT_MIN_POINTS
+    assert "irregular" in fit["reason"]
+    pole = (r <= 11.5) & (dz > 7)
+    assert (own.owner[pole] == 1).mean() < 0.2
+
 def test_the_hidden_pole_is_carried_against_an_unlabelled_cup(monkeypatch):
     """The same joint with the cup unlabelled and the ball's label 5 voxels short of its
     pole: the pole's cortex, bridged to the cup where the slices hide the joint, is a piece of
@@ -1104,6 +1117,26 @@ def test_joint_surface_fit_picks_the_simpler_model_and_refuses_noise():
     assert jointfit.fit_joint_surface(rng.uniform(-10, 10, (3000, 3)), 0.6) is None
     assert jointfit.fit_joint_surface(pts[:20], 0.6) is None
 
+
+
+def test_a_joint_fit_may_leave_the_scatter_of_the_cts_own_resolution():
+    """On thick slices the seen joint space is located no better than the CT resolves it: a
+    ball joint's mid-surface scattered by 1.2 mm RMS is refused on a 0.6 mm grid of a 0.6 mm CT
+    (irregular, with the reason) and fitted on the same grid of a 3 mm CT."""
+    rng = np.random.default_rng(8)
+    th = np.radians(rng.uniform(10, 80, 3000))
+    ph = rng.uniform(0, 2 * np.pi, 3000)
+    u = np.column_stack([np.cos(th), np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph)])
+    c = np.array([1.0, 2.0, -4.0])
+    pts = c + u * (26.0 + rng.normal(0, 1.2, (3000, 1)))
+    why: list = []
+    assert jointfit.fit_joint_surface(pts, 0.6, 0.6, reasons=why) is None
+    assert len(why) == 1 and "irregular" in why[0] and "sphere" in why[0], why
+    s = jointfit.fit_joint_surface(pts, 0.6, 3.0)
+    assert s is not None and s.kind == "sphere" and abs(s.radius - 26.0) < 0.5
+    assert 1.0 < s.rms < 1.4 and s.determined
+    # scattered points stay refused at any resolution
+    assert jointfit.fit_joint_surface(rng.uniform(-10, 10, (3000, 3)), 0.6, 3.0) is None
 
 def test_euler_number_counts_tunnels_and_connectivity():
     from BoneWatertightLib.stages.poisson import euler_number
