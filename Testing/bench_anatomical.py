@@ -70,6 +70,7 @@ def _build_here(case, seed, cdir):
     """In the build process: make the phantom and write it to cdir."""
     import anatomical
 
+    os.makedirs(cdir, exist_ok=True)  # before the work: an unwritable place fails at once
     t0 = time.perf_counter()
     ph = anatomical.make_anatomical(case, seed=seed)
     seconds = time.perf_counter() - t0
