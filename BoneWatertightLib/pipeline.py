@@ -606,7 +606,7 @@ def ownership_stage(run: _Run, ws: Workspace) -> None:
             theta_max=params.theta_max, soft=th["soft_tissue_hu"],
             contrast=max(th["cortex_hu"] - th["soft_tissue_hu"], 1.0),
             coarseness=ws.prep.coarseness, band_mm=ws.band,
-            ct_resolution=float(max(ws.prep.ct_spacing)), progress=sub)
+            ct_resolution=float(np.prod(ws.prep.ct_spacing)) ** (1.0 / 3.0), progress=sub)
 
 
 def bone_schedule(ws: Workspace, max_memory_gb: float) -> tuple:

@@ -1120,9 +1120,10 @@ def test_joint_surface_fit_picks_the_simpler_model_and_refuses_noise():
 
 
 def test_a_joint_fit_may_leave_the_scatter_of_the_cts_own_resolution():
-    """On thick slices the seen joint space is located no better than the CT resolves it: a
+    """On a coarse CT the seen joint space is located no better than the CT resolves it: a
     ball joint's mid-surface scattered by 1.2 mm RMS is refused on a 0.6 mm grid of a 0.6 mm CT
-    (irregular, with the reason) and fitted on the same grid of a 3 mm CT."""
+    (irregular, with the reason) and fitted on the same grid of a 3 mm CT; a plane or a shallow
+    cap with that scatter is refused on both."""
     rng = np.random.default_rng(8)
     th = np.radians(rng.uniform(10, 80, 3000))
     ph = rng.uniform(0, 2 * np.pi, 3000)
@@ -1135,7 +1136,15 @@ def test_a_joint_fit_may_leave_the_scatter_of_the_cts_own_resolution():
     s = jointfit.fit_joint_surface(pts, 0.6, 3.0)
     assert s is not None and s.kind == "sphere" and abs(s.radius - 26.0) < 0.5
     assert 1.0 < s.rms < 1.4 and s.determined
-    # scattered points stay refused at any resolution
+    # a plane (a disc between two vertebrae) must follow its points to the grid's voxel; a
+    # sphere seen on a shallow patch too; scattered points stay refused at any resolution
+    xy = rng.uniform(-15, 15, (3000, 2))
+    flat = np.column_stack([rng.normal(0, 1.2, len(xy)), xy])
+    why = []
+    assert jointfit.fit_joint_surface(flat, 0.6, 3.0, reasons=why) is None
+    assert "plane" in why[0], why
+    cap = c + u[th < np.radians(25)] * (26.0 + rng.normal(0, 1.2, (int((th < np.radians(25)).sum()), 1)))
+    assert len(cap) > 200 and jointfit.fit_joint_surface(cap, 0.6, 3.0) is None
     assert jointfit.fit_joint_surface(rng.uniform(-10, 10, (3000, 3)), 0.6, 3.0) is None
 
 def test_euler_number_counts_tunnels_and_connectivity():

@@ -22,10 +22,14 @@ from typing import Optional
 import numpy as np
 
 # A fit is trusted when its robust RMS distance to the seen mid-surface points is at most this
-# many voxels (the mid-surface voxels are on the grid: a perfect fit leaves about 0.3 voxel) -
-# voxels of the CT where it is coarser than the grid: the two bones' borders, between which the
-# mid-surface lies, are located no better than the CT resolves them, and across a curved joint
-# every direction, the slices' too, is someone's normal.
+# many voxels (the mid-surface voxels are on the grid: a perfect fit leaves about 0.3 voxel).
+# A ball joint seen over a good part of its ball (a determined sphere, see
+# JointSurface.determined) may leave this many voxels of the CT where the CT is coarser than the
+# grid (the size of a voxel of the same volume): the two bones' borders, between which the
+# mid-surface lies, are located no better than the CT resolves them, and across a ball every
+# direction is a normal. A plane or a shallow patch is a guess at the joint's shape and must
+# follow the seen joint space to the grid's voxel (a disc's plane carried beside it cuts the
+# facets of two vertebrae).
 FIT_MAX_RMS_VOXELS = 0.75
 # At least this many mid-surface points, spread over at least this many mm (both directions
 # of the fitted surface), or the fit is not tried.
@@ -231,8 +235,8 @@ def fit_joint_surface(points: np.ndarray, voxel: float, resolution: float = 0.0,
     voxel : float
         The grid's voxel size (mm): the scale of the points' own scatter.
     resolution : float
-        The CT's coarsest spacing (mm): where it is coarser than the grid, the scale of the
-        scatter instead (see FIT_MAX_RMS_VOXELS).
+        The size (mm) of a cube of the CT's voxel volume: where it is coarser than the grid,
+        the scale of a determined sphere's scatter instead (see FIT_MAX_RMS_VOXELS).
     reasons : list, optional
         Gets one sentence when no fit is returned: why.
 
@@ -266,9 +270,11 @@ def fit_joint_surface(points: np.ndarray, voxel: float, resolution: float = 0.0,
             chosen = ("sphere", sphere)
     if chosen is None and plane is not None:
         chosen = ("plane", plane)
-    limit = FIT_MAX_RMS_VOXELS * max(voxel, resolution)
     if chosen is None:
         return refuse("neither a plane nor a sphere could be fitted")
+    limit = FIT_MAX_RMS_VOXELS * voxel
+    if chosen[0] == "sphere" and extent.max() >= SPHERE_MIN_EXTENT_RADII * chosen[1][0][1]:
+        limit = FIT_MAX_RMS_VOXELS * max(voxel, resolution)
     if chosen[1][1] > limit:
         return refuse(f"irregular: the best {chosen[0]} leaves an RMS of {chosen[1][1]:.2f} mm "
                       f"(at most {limit:.2f} mm)")

@@ -538,8 +538,9 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         joint zone's reach, where the labels are not trusted either (a hidden part at the edge
         of a joint, beside a cup's rim, has seen joint space on one side only).
     resolution_mm : float
-        The CT's coarsest spacing (mm): how closely a fit must follow the seen joint space
-        scales with it where it is coarser than the grid (jointfit.FIT_MAX_RMS_VOXELS).
+        The CT's voxel size (mm, a cube of its volume): how closely a ball joint's sphere must
+        follow the seen joint space scales with it where it is coarser than the grid
+        (jointfit.FIT_MAX_RMS_VOXELS).
 
     Returns
     -------
@@ -735,7 +736,8 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     band_mm : float
         How far a bone may reach beyond its label (the region's dilation).
     ct_resolution : float
-        The CT's coarsest spacing (mm), for the joint fits (:func:`carry_joint_fits`).
+        The CT's voxel size (mm, a cube of its volume), for the joint fits
+        (:func:`carry_joint_fits`).
 
     Returns
     -------
