@@ -50,7 +50,7 @@ from scipy.spatial import ConvexHull
 
 from .threshold import SIX, bbox_slices, segment_region
 from ..mesh.distance import distance_inside, distance_outside
-from ..threads import background, cpu_threads, thread_map
+from ..threads import cpu_threads, thread_map
 
 # The valley filters run on up to this many threads (scipy's filters release the GIL).
 MAX_FILTER_THREADS = 4
@@ -854,12 +854,6 @@ def _label_parts(ct, labels, n, spacing, *, r_core, r_contact, band_mm, t_low,
             return None
         sl = bbox_slices(m, int(np.ceil(max(r_contact, band_mm) / spacing)) + 2)
         sub = m[sl]
-        ext = [np.nonzero(sub.any(axis=tuple(a for a in range(3) if a != ax)))[0] for ax in range(3)]
-        extent = max(int(e.max() - e.min() + 1) for e in ext) * spacing
-        # The region does not depend on the core: on a thread meanwhile.
-        reg = background(segment_region, sub, spacing, min(REGION_CLOSE_MM,
-                                                           REGION_CLOSE_FRACTION * extent),
-                         band_mm, name="segment-region")
         depth = distance_inside(np.pad(sub, 1))[1:-1, 1:-1, 1:-1] * spacing
         r = min(r_core, CORE_MAX_DEPTH_FRACTION * float(depth.max()))
         core = depth > r if (depth > r).any() else depth >= depth.max()
@@ -867,11 +861,15 @@ def _label_parts(ct, labels, n, spacing, *, r_core, r_contact, band_mm, t_low,
         bad, pieces = unsupported_parts(ct[sl], sub, core, spacing, level=t_low)
         if pieces:
             core &= ~bad
+        ext = [np.nonzero(sub.any(axis=tuple(a for a in range(3) if a != ax)))[0] for ax in range(3)]
+        extent = max(int(e.max() - e.min() + 1) for e in ext) * spacing
+        reg = segment_region(sub, spacing, close_mm=min(REGION_CLOSE_MM, REGION_CLOSE_FRACTION * extent),
+                             dilate_mm=band_mm)
         others = labelled[sl] & ~sub
         contact = None
         if others.any():
             contact = sub & (distance_outside(others) * spacing <= r_contact)
-        return sl, core, r, bad, pieces, reg.result(), contact
+        return sl, core, r, bad, pieces, reg, contact
 
     # The labels' parts are independent (their transforms and filters release the GIL): on
     # threads, merged in label order (the progress callback only from this thread).
