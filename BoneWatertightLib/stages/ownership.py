@@ -583,12 +583,23 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         # A joint is one patch of seen joint space: seen parts nearer each other than twice
         # the margin the fit is carried beyond its points are one joint (the ring round a
         # hidden pole); parts farther apart are separate joints of the same two bones (the disc
-        # and the two facet joints of two vertebrae), each fitted on its own - one plane
-        # through a disc and its facets gives one vertebra's articular process to the other.
+        # and the two facet joints of two vertebrae). Only the largest is fitted: one plane
+        # through a disc and its facets gave one vertebra's articular process to the other,
+        # and a facet's own sphere, carried over its contact, cut the process beyond it.
         patches, n_patches = ndimage.label(distance_outside(mid) * spacing <= margin_mm,
                                            structure=np.ones((3, 3, 3), bool))
-        for patch in range(1, n_patches + 1):
+        sizes = np.bincount(patches[mid], minlength=n_patches + 1)
+        for patch in np.argsort(-sizes)[:1]:
+            if patch == 0:
+                continue
             part = mid & (patches == patch)
+            if n_patches > 1:
+                rest = int(sizes.sum() - sizes[patch])
+                if rest >= FIT_MIN_POINTS:
+                    out.append({"a": int(a), "b": int(b), "model": None, "rms_mm": None,
+                                "radius_mm": None, "points": rest, "to_a": 0, "to_b": 0,
+                                "used": False, "reason": f"{n_patches - 1} smaller patches of "
+                                "seen joint space of the same two bones (not fitted)"})
             pts = (np.argwhere(part) + offset) * spacing
             why: list = []
             surf = fit_joint_surface(pts, spacing, resolution_mm, reasons=why)
@@ -625,10 +636,16 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
             pos = (idx + offset) * spacing
             s = surf.signed(pos)
             ok = np.abs(s) <= reach_mm
-            # The fit interpolates: it holds where its seen joint space surrounds the hidden
-            # part, and a margin beyond it (a sphere extrapolated from one side of a joint - a
-            # curved facet - cuts the articular process beyond).
-            ok[ok] = surf.supported(pos[ok], margin_mm=margin_mm)
+            if surf.determined:
+                # A ball joint whose seen part spans a good part of the ball: its surface continues
+                # over the whole contact, and the fit holds within reach of where the two bones
+                # touch or the joint space is seen.
+                touching = (in_a & (db <= spacing)) | (in_b & (da <= spacing)) | part
+                ok &= (distance_outside(touching) * spacing)[tuple(idx.T)] <= reach_mm
+            else:
+                # A plane, or a sphere seen on a small patch (its curvature poorly known), holds
+                # where the seen joint space surrounds the hidden part and a margin beyond it.
+                ok[ok] = surf.supported(pos[ok], margin_mm=margin_mm)
             rec["used"] = True
             side = np.zeros(w.shape, np.int8)   # 1: clearly on a's side, 2: on b's
             sel = idx[ok]
