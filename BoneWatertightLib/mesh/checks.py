@@ -358,7 +358,6 @@ def find_self_intersections(vertices, faces, max_pairs: Optional[int] = None,
     return pairs
 
 
-
 # Batches of candidate pairs tested at once on threads (numpy's loops release the GIL).
 CHECK_THREADS = 2
 
@@ -383,6 +382,7 @@ def _tested_batches(ctx, batches):
                 yield i0, j0, fut.result()
         for i0, j0, fut in pending:
             yield i0, j0, fut.result()
+
 
 # find_self_intersections(only=...) prunes the faces far from ``only`` when these are fewer
 # than this fraction of the faces (beyond it the pruning costs more than it saves).

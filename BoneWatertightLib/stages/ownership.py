@@ -548,8 +548,8 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         Per pair with a fit: ``a``, ``b``, ``model`` (plane / sphere), ``rms_mm``,
         ``radius_mm``, ``points``, ``inliers``, ``agreement``, ``to_a`` / ``to_b`` (voxels
         moved), ``used`` (False with a ``reason`` when the fit was not trusted); per pair
-        whose seen joint space has enough points but no fit: ``model`` None and the
-        ``reason``.
+        whose seen joint space has enough points but no fit, and for the smaller patches of
+        a pair's seen joint space (not fitted): ``model`` None and the ``reason``.
     """
     from .jointfit import FIT_MIN_POINTS, fit_joint_surface
 
@@ -588,97 +588,96 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         # and a facet's own sphere, carried over its contact, cut the process beyond it.
         patches, n_patches = ndimage.label(distance_outside(mid) * spacing <= margin_mm,
                                            structure=np.ones((3, 3, 3), bool))
-        sizes = np.bincount(patches[mid], minlength=n_patches + 1)
-        for patch in np.argsort(-sizes)[:1]:
-            if patch == 0:
+        part = mid
+        if n_patches > 1:
+            sizes = np.bincount(patches[mid], minlength=n_patches + 1)
+            largest = int(np.argmax(sizes[1:])) + 1
+            part = mid & (patches == largest)
+            rest = int(sizes.sum() - sizes[largest])
+            if rest >= FIT_MIN_POINTS:
+                out.append({"a": int(a), "b": int(b), "model": None, "rms_mm": None,
+                            "radius_mm": None, "points": rest, "to_a": 0, "to_b": 0,
+                            "used": False, "reason": f"{n_patches - 1} smaller patches of seen "
+                            "joint space of the same two bones (not fitted)"})
+        pts = (np.argwhere(part) + offset) * spacing
+        why: list = []
+        surf = fit_joint_surface(pts, spacing, resolution_mm, reasons=why)
+        if surf is None:
+            if len(pts) >= FIT_MIN_POINTS:
+                out.append({"a": int(a), "b": int(b), "model": None, "rms_mm": None,
+                            "radius_mm": None, "points": int(len(pts)), "to_a": 0, "to_b": 0,
+                            "used": False, "reason": why[0] if why else "no fit"})
+            continue
+        rec = {"a": int(a), "b": int(b), "model": surf.kind, "rms_mm": round(surf.rms, 3),
+               "radius_mm": round(surf.radius, 2) if np.isfinite(surf.radius) else None,
+               "points": surf.n_points, "inliers": round(surf.n_points / len(pts), 3),
+               "extent_mm": round(surf.extent, 1),
+               "to_a": 0, "to_b": 0, "used": False}
+        out.append(rec)
+        # Orient the fit by the bones beside the seen joint space; it must separate them there.
+        near = distance_outside(part) * spacing <= radius_mm
+        pa = (np.argwhere(in_a & near) + offset) * spacing
+        pb = (np.argwhere(in_b & near) + offset) * spacing
+        if len(pa) < 10 or len(pb) < 10:
+            rec["reason"] = "too little bone beside the seen joint space"
+            continue
+        sa = surf.distance(pa)
+        sb = surf.distance(pb)
+        surf.sign = -1.0 if np.median(sa) > np.median(sb) else 1.0
+        sa, sb = surf.sign * sa, surf.sign * sb
+        agree = 0.5 * (np.mean(sa < 0) + np.mean(sb > 0))
+        rec["agreement"] = round(float(agree), 3)
+        if agree < FIT_MIN_AGREEMENT:
+            rec["reason"] = "the fit does not separate the two bones where the joint is seen"
+            continue
+        tol = max(spacing, 2.0 * surf.rms)
+        idx = np.argwhere(in_a | in_b)
+        pos = (idx + offset) * spacing
+        s = surf.signed(pos)
+        ok = np.abs(s) <= reach_mm
+        if surf.determined:
+            # A ball joint whose seen part spans a good part of the ball: its surface continues
+            # over the whole contact, and the fit holds within reach of where the two bones
+            # touch or the joint space is seen.
+            touching = (in_a & (db <= spacing)) | (in_b & (da <= spacing)) | part
+            ok &= (distance_outside(touching) * spacing)[tuple(idx.T)] <= reach_mm
+        else:
+            # A plane, or a sphere seen on a small patch (its curvature poorly known), holds
+            # where the seen joint space surrounds the hidden part and a margin beyond it.
+            ok[ok] = surf.supported(pos[ok], margin_mm=margin_mm)
+        rec["used"] = True
+        side = np.zeros(w.shape, np.int8)   # 1: clearly on a's side, 2: on b's
+        sel = idx[ok]
+        sv = s[ok]
+        side[tuple(sel.T)] = np.where(sv < -tol, 1, np.where(sv > tol, 2, 0))
+        # Bone of a basin that lies clearly on its own side of the fit belongs to it even where
+        # its label stops short (a rough femur label short of the head at the cup's rim): its
+        # region grows over it, or no bone would own it and the neighbour's closing would take
+        # it (a tongue of the cup into the head).
+        for mine, code in ((a, 1), (b, 2)):
+            if mine > n:
                 continue
-            part = mid & (patches == patch)
-            if n_patches > 1:
-                rest = int(sizes.sum() - sizes[patch])
-                if rest >= FIT_MIN_POINTS:
-                    out.append({"a": int(a), "b": int(b), "model": None, "rms_mm": None,
-                                "radius_mm": None, "points": rest, "to_a": 0, "to_b": 0,
-                                "used": False, "reason": f"{n_patches - 1} smaller patches of "
-                                "seen joint space of the same two bones (not fitted)"})
-            pts = (np.argwhere(part) + offset) * spacing
-            why: list = []
-            surf = fit_joint_surface(pts, spacing, resolution_mm, reasons=why)
-            if surf is None:
-                if len(pts) >= FIT_MIN_POINTS:
-                    out.append({"a": int(a), "b": int(b), "model": None, "rms_mm": None,
-                                "radius_mm": None, "points": int(len(pts)), "to_a": 0, "to_b": 0,
-                                "used": False, "reason": why[0] if why else "no fit"})
+            stay = (side == code) & (w == mine) & f
+            if stay.any():
+                _grow_region(regions, mine, stay, sl)
+        for mine, other, key in ((a, b, "to_a"), (b, a, "to_b")):
+            flip = (side == (1 if mine == a else 2)) & (w == other) & f
+            if not flip.any():
                 continue
-            rec = {"a": int(a), "b": int(b), "model": surf.kind, "rms_mm": round(surf.rms, 3),
-                   "radius_mm": round(surf.radius, 2) if np.isfinite(surf.radius) else None,
-                   "points": surf.n_points, "inliers": round(surf.n_points / len(pts), 3),
-                   "extent_mm": round(surf.extent, 1),
-                   "to_a": 0, "to_b": 0, "used": False}
-            out.append(rec)
-            # Orient the fit by the bones beside the seen joint space; it must separate them there.
-            near = distance_outside(part) * spacing <= radius_mm
-            pa = (np.argwhere(in_a & near) + offset) * spacing
-            pb = (np.argwhere(in_b & near) + offset) * spacing
-            if len(pa) < 10 or len(pb) < 10:
-                rec["reason"] = "too little bone beside the seen joint space"
+            comp, nc = ndimage.label(flip, structure=SIX)
+            touch = ndimage.binary_dilation(f & (w == mine), structure=SIX) & flip
+            keep = np.zeros(nc + 1, bool)
+            keep[np.unique(comp[touch])] = True
+            keep[0] = False
+            flip = keep[comp]
+            if not flip.any():
                 continue
-            sa = surf.distance(pa)
-            sb = surf.distance(pb)
-            surf.sign = -1.0 if np.median(sa) > np.median(sb) else 1.0
-            sa, sb = surf.sign * sa, surf.sign * sb
-            agree = 0.5 * (np.mean(sa < 0) + np.mean(sb > 0))
-            rec["agreement"] = round(float(agree), 3)
-            if agree < FIT_MIN_AGREEMENT:
-                rec["reason"] = "the fit does not separate the two bones where the joint is seen"
-                continue
-            tol = max(spacing, 2.0 * surf.rms)
-            idx = np.argwhere(in_a | in_b)
-            pos = (idx + offset) * spacing
-            s = surf.signed(pos)
-            ok = np.abs(s) <= reach_mm
-            if surf.determined:
-                # A ball joint whose seen part spans a good part of the ball: its surface continues
-                # over the whole contact, and the fit holds within reach of where the two bones
-                # touch or the joint space is seen.
-                touching = (in_a & (db <= spacing)) | (in_b & (da <= spacing)) | part
-                ok &= (distance_outside(touching) * spacing)[tuple(idx.T)] <= reach_mm
-            else:
-                # A plane, or a sphere seen on a small patch (its curvature poorly known), holds
-                # where the seen joint space surrounds the hidden part and a margin beyond it.
-                ok[ok] = surf.supported(pos[ok], margin_mm=margin_mm)
-            rec["used"] = True
-            side = np.zeros(w.shape, np.int8)   # 1: clearly on a's side, 2: on b's
-            sel = idx[ok]
-            sv = s[ok]
-            side[tuple(sel.T)] = np.where(sv < -tol, 1, np.where(sv > tol, 2, 0))
-            # Bone of a basin that lies clearly on its own side of the fit belongs to it even where
-            # its label stops short (a rough femur label short of the head at the cup's rim): its
-            # region grows over it, or no bone would own it and the neighbour's closing would take
-            # it (a tongue of the cup into the head).
-            for mine, code in ((a, 1), (b, 2)):
-                if mine > n:
-                    continue
-                stay = (side == code) & (w == mine) & f
-                if stay.any():
-                    _grow_region(regions, mine, stay, sl)
-            for mine, other, key in ((a, b, "to_a"), (b, a, "to_b")):
-                flip = (side == (1 if mine == a else 2)) & (w == other) & f
-                if not flip.any():
-                    continue
-                comp, nc = ndimage.label(flip, structure=SIX)
-                touch = ndimage.binary_dilation(f & (w == mine), structure=SIX) & flip
-                keep = np.zeros(nc + 1, bool)
-                keep[np.unique(comp[touch])] = True
-                keep[0] = False
-                flip = keep[comp]
-                if not flip.any():
-                    continue
-                w[flip] = mine
-                c = cores[sl]
-                c[flip & (c == other)] = 0
-                if mine <= n:  # an unlabelled piece has no region
-                    _grow_region(regions, mine, flip, sl)
-                rec[key] = int(flip.sum())
+            w[flip] = mine
+            c = cores[sl]
+            c[flip & (c == other)] = 0
+            if mine <= n:  # an unlabelled piece has no region
+                _grow_region(regions, mine, flip, sl)
+            rec[key] = int(flip.sum())
     return out
 
 
