@@ -303,7 +303,8 @@ def test_unsupported_parts_on_slabs_and_shifted_slices_equal_the_plain_filters(m
     assert parts.max() > 3
     assert np.array_equal(ownership._six_max(parts), ndimage.maximum_filter(
         parts, footprint=ownership.SIX, mode="constant", cval=0))
-    # A label with soft-tissue blobs: two outside the bone (unsupported), a marrow inside it.
+    # A label with a false blob of soft tissue beside the bone (unsupported) and a marrow
+    # inside its cortex (supported).
     ct = np.full((40, 30, 30), 40.0, np.float32)
     ct[8:32, 6:24, 6:24] = 900.0
     ct[12:28, 10:20, 10:20] = 30.0  # marrow, walled by cortex

@@ -1186,7 +1186,8 @@ def test_a_joint_fit_may_leave_the_scatter_of_the_cts_own_resolution():
     why = []
     assert jointfit.fit_joint_surface(flat, 0.6, 3.0, reasons=why) is None
     assert "plane" in why[0], why
-    cap = c + u[th < np.radians(25)] * (26.0 + rng.normal(0, 1.2, (int((th < np.radians(25)).sum()), 1)))
+    near_pole = th < np.radians(25)
+    cap = c + u[near_pole] * (26.0 + rng.normal(0, 1.2, (int(near_pole.sum()), 1)))
     assert len(cap) > 200 and jointfit.fit_joint_surface(cap, 0.6, 3.0) is None
     assert jointfit.fit_joint_surface(rng.uniform(-10, 10, (3000, 3)), 0.6, 3.0) is None
 
