@@ -86,7 +86,10 @@ def add_io_options(parser: argparse.ArgumentParser) -> None:
     io_group.add_argument("--save-intermediates", metavar="DIR",
                           help="Write intermediate results (threshold points as .ply, visible "
                                "points, M0 as .vtp) into DIR.")
-    io_group.add_argument("--picture", metavar="PNG", help="Render a PNG picture of the result.")
+    io_group.add_argument("--picture", metavar="PNG",
+                          help="Render a PNG picture of the result. With several bones, one "
+                               "picture each: PNG's {label} is replaced by the segment name, or "
+                               "without {label} _<name> is added before .png.")
     io_group.add_argument("--all-labels", action="store_true",
                           help="Reconstruct every label of --seg (together; OUT needs {label}).")
     io_group.add_argument("--neighbours", default="auto", metavar="auto|none|LABEL,...",
