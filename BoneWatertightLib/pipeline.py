@@ -62,7 +62,7 @@ from .stages.refine import refine_to_edges
 from .stages.threshold import (BoneMasks, bone_masks, boundary_voxels, crossing_points,
                                erosions_to_separate, voxel_points)
 from .stages.visible import visible_points
-from .threads import background
+from .threads import cpu_threads, thread_map
 
 # The filter's percentile is taken within this distance (mm) of the targets.
 FILTER_REGION_MM = 3.0
@@ -770,24 +770,27 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     if own.unsupported is not None:
         trusted &= ~own.unsupported[masks.box]
     # The segment's tunnels counted at its own resolution (its stair steps and holes smaller
-    # than that are no tunnels of the bone: plausibility.segment_genus), on a thread while the
-    # normals and the carved region are computed (they do not depend on it).
-    genus = background(_plaus.segment_genus, trusted, d, ws.prep.coarseness,
-                       name="segment-genus")
-    normals = mask_normals(masks.solid_h0, points, d)
-    # Where neither the CT nor the segment has bone, M0 has none either: Poisson closes over
-    # what the views do not see into (a curved canal, a deep notch).
-    bone_ct = masks.occupancy | masks.w_ht | masks.w_h0
-    lumen = ws.ct_f[masks.box] < own.info["label_level_hu"]
-    carve = _poisson.carve_region(
-        trusted, bone_ct, d, segment_margin_mm=CARVE_SEGMENT_COARSENESS * ws.prep.coarseness + d,
-        bone_margin_mm=CARVE_BONE_MM + d, soft_tissue=lumen)
+    # than that are no tunnels of the bone: plausibility.segment_genus), on a thread beside the
+    # normals and the carved region, which do not depend on it. The carve: where neither the
+    # CT nor the segment has bone, M0 has none either (Poisson closes over what the views do
+    # not see into: a curved canal, a deep notch).
+    def part(i):
+        if i == 0:
+            return _plaus.segment_genus(trusted, d, ws.prep.coarseness)
+        bone_ct = masks.occupancy | masks.w_ht | masks.w_h0
+        lumen = ws.ct_f[masks.box] < own.info["label_level_hu"]
+        return mask_normals(masks.solid_h0, points, d), _poisson.carve_region(
+            trusted, bone_ct, d,
+            segment_margin_mm=CARVE_SEGMENT_COARSENESS * ws.prep.coarseness + d,
+            bone_margin_mm=CARVE_BONE_MM + d, soft_tissue=lumen)
+
+    genus, (normals, carve) = thread_map(part, range(2), cpu_threads(2), "m0-inputs")
     # The fill takes its material from the segment itself (smoothing would thin its thin parts
     # away); tunnels it cannot close, the thresholded bone may (W_HT holds W_H0 and the thin
     # plates).
     fusion = _poisson.Fusion(label=trusted,
                              label_origin=np.zeros(3), label_spacing=d,
-                             genus=genus.result(),
+                             genus=genus,
                              close_mm=(ws.prep.coarseness,), bone=masks.w_ht, carve=carve)
     # A thin process of the bone's own (a sacral tip at 3 mm) that Poisson at depth 7
     # detaches as a small component is joined back from the bone the thresholds hold -

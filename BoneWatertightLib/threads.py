@@ -27,45 +27,21 @@ def thread_map(work, items, threads: int, name: str = "bonewatertight") -> list:
         return list(pool.map(work, items))
 
 
-class _Done:
-    """The result of work done at once (the interface of a Future that :func:`background`
-    uses)."""
+def map_ahead(work, items, threads: int, name: str = "bonewatertight"):
+    """``work(x)`` for each of ``items`` (any iterable, consumed lazily), yielded in order; with
+    ``threads`` > 1 the next items are worked on threads while the caller takes the results.
+    The caller may stop early: at most the items ahead are wasted."""
+    if threads <= 1:
+        for x in items:
+            yield work(x)
+        return
+    from concurrent.futures import ThreadPoolExecutor
 
-    def __init__(self, work, args):
-        self._value = work(*args)
-
-    def result(self):
-        return self._value
-
-
-class _Background:
-    """``work(*args)`` on a thread of its own; :meth:`result` waits for it (and raises its
-    exception)."""
-
-    def __init__(self, work, args, name):
-        import threading
-
-        self._value = self._error = None
-
-        def target():
-            try:
-                self._value = work(*args)
-            except BaseException as exc:  # handed to the caller by result()
-                self._error = exc
-
-        self._thread = threading.Thread(target=target, name=name, daemon=True)
-        self._thread.start()
-
-    def result(self):
-        self._thread.join()
-        if self._error is not None:
-            raise self._error
-        return self._value
-
-
-def background(work, *args, name: str = "bonewatertight-background"):
-    """``work(*args)`` started on a thread while the caller goes on (with more than one CPU;
-    with one, done at once); the returned object's ``result()`` gives its value."""
-    if cpu_threads(2) <= 1:
-        return _Done(work, args)
-    return _Background(work, args, name)
+    with ThreadPoolExecutor(threads, thread_name_prefix=name) as pool:
+        pending = []
+        for x in items:
+            pending.append(pool.submit(work, x))
+            if len(pending) >= threads:
+                yield pending.pop(0).result()
+        while pending:
+            yield pending.pop(0).result()

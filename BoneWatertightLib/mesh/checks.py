@@ -21,7 +21,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from ..errors import SurfaceCheckError
-from ..threads import cpu_threads
+from ..threads import cpu_threads, map_ahead
 
 # Relative area below which a face counts as degenerate (times the squared mean edge length).
 DEGENERATE_EPS = 1e-10
@@ -338,7 +338,10 @@ def find_self_intersections(vertices, faces, max_pairs: Optional[int] = None,
     }
     found = []
     total = 0
-    for i, j, hit in _tested_batches(ctx, _candidate_pairs(lo, hi)):
+    # The narrow phase of the next batches on threads (numpy's loops release the GIL).
+    tested = map_ahead(lambda ij: (*ij, _narrow_phase(ctx, *ij)), _candidate_pairs(lo, hi),
+                       cpu_threads(CHECK_THREADS), "checks")
+    for i, j, hit in tested:
         if hit.any():
             found.append(np.stack([i[hit], j[hit]], axis=1))
             total += int(hit.sum())
@@ -358,30 +361,8 @@ def find_self_intersections(vertices, faces, max_pairs: Optional[int] = None,
     return pairs
 
 
-# Batches of candidate pairs tested at once on threads (numpy's loops release the GIL).
+# Threads testing batches of candidate pairs at once.
 CHECK_THREADS = 2
-
-
-def _tested_batches(ctx, batches):
-    """Yield (i, j, hit) for each batch (i, j) of candidate pairs, in order: the narrow phase
-    of the next batches runs on threads while the caller takes the results (the caller may
-    stop early: at most the batches ahead are wasted)."""
-    threads = cpu_threads(CHECK_THREADS)
-    if threads <= 1:
-        for i, j in batches:
-            yield i, j, _narrow_phase(ctx, i, j)
-        return
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(threads, thread_name_prefix="checks") as pool:
-        pending = []
-        for i, j in batches:
-            pending.append((i, j, pool.submit(_narrow_phase, ctx, i, j)))
-            if len(pending) > threads:
-                i0, j0, fut = pending.pop(0)
-                yield i0, j0, fut.result()
-        for i0, j0, fut in pending:
-            yield i0, j0, fut.result()
 
 
 # find_self_intersections(only=...) prunes the faces far from ``only`` when these are fewer

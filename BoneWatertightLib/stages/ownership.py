@@ -595,18 +595,14 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
             part = mid & (patches == largest)
             rest = int(sizes.sum() - sizes[largest])
             if rest >= FIT_MIN_POINTS:
-                out.append({"a": int(a), "b": int(b), "model": None, "rms_mm": None,
-                            "radius_mm": None, "points": rest, "to_a": 0, "to_b": 0,
-                            "used": False, "reason": f"{n_patches - 1} smaller patches of seen "
-                            "joint space of the same two bones (not fitted)"})
+                out.append(_no_fit(a, b, rest, f"{n_patches - 1} smaller patches of seen joint "
+                                   "space of the same two bones (not fitted)"))
         pts = (np.argwhere(part) + offset) * spacing
         why: list = []
         surf = fit_joint_surface(pts, spacing, resolution_mm, reasons=why)
         if surf is None:
             if len(pts) >= FIT_MIN_POINTS:
-                out.append({"a": int(a), "b": int(b), "model": None, "rms_mm": None,
-                            "radius_mm": None, "points": int(len(pts)), "to_a": 0, "to_b": 0,
-                            "used": False, "reason": why[0] if why else "no fit"})
+                out.append(_no_fit(a, b, len(pts), why[0] if why else "no fit"))
             continue
         rec = {"a": int(a), "b": int(b), "model": surf.kind, "rms_mm": round(surf.rms, 3),
                "radius_mm": round(surf.radius, 2) if np.isfinite(surf.radius) else None,
@@ -679,6 +675,13 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
                 _grow_region(regions, mine, flip, sl)
             rec[key] = int(flip.sum())
     return out
+
+
+
+def _no_fit(a: int, b: int, points: int, reason: str) -> dict:
+    """:func:`carry_joint_fits`'s record of seen joint space that got no fit."""
+    return {"a": int(a), "b": int(b), "model": None, "rms_mm": None, "radius_mm": None,
+            "points": int(points), "to_a": 0, "to_b": 0, "used": False, "reason": reason}
 
 
 def _grow_region(regions: dict, k: int, add: np.ndarray, sl: tuple) -> None:

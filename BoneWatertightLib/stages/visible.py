@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import ConvexHull, cKDTree
 
-from ..threads import cpu_threads
+from ..threads import cpu_threads, map_ahead
 
 # Most points fed to the hull (the surface voxels are thinned on a lattice beyond this).
 MAX_HULL_POINTS = 60000
@@ -72,21 +72,8 @@ def _hulls(points: np.ndarray, viewpoints: list, log_radius: float):
     """:func:`hpr_visible` of each viewpoint, in order, as a generator; with several CPUs the
     next views are computed ahead on threads (Qhull releases the GIL: 12 femur views 1.1 ->
     0.6 s on two threads). The caller may stop early: at most the views ahead are wasted."""
-    threads = cpu_threads(HULL_THREADS)
-    if threads <= 1:
-        for vp in viewpoints:
-            yield hpr_visible(points, vp, log_radius)
-        return
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(threads, thread_name_prefix="hpr") as pool:
-        pending = []
-        for vp in viewpoints:
-            pending.append(pool.submit(hpr_visible, points, vp, log_radius))
-            if len(pending) >= threads:
-                yield pending.pop(0).result()
-        while pending:
-            yield pending.pop(0).result()
+    return map_ahead(lambda vp: hpr_visible(points, vp, log_radius), viewpoints,
+                     cpu_threads(HULL_THREADS), "hpr")
 
 
 def view_directions(points: np.ndarray) -> np.ndarray:
