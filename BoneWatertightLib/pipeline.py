@@ -669,6 +669,13 @@ def threshold_windows(run: _Run, ws: Workspace, bone: BoneWork) -> None:
                            "but inside its span, continuing this bone without a joint space, was "
                            f"taken in as this bone's ({sum(m['ml'] for m in plates):.2f} ml; the "
                            "segment missed it)", len(plates), "pieces")
+    beyond = [m for m in own.info.get("merged_unlabelled", ())
+              if m.get("small_piece_beyond_reach") and m["into"] == bone.k]
+    if beyond:
+        bone.fallbacks.add("ownership", "a small piece of unlabelled bone beyond the segment's "
+                           "reach, touching only this bone and without a joint space, was taken "
+                           f"in as this bone's ({sum(m['ml'] for m in beyond):.2f} ml; the "
+                           "segment stopped short of a process)", len(beyond), "pieces")
     with timed(bone.times, "threshold"):
         bone.masks = bone_masks(ws.ct_f, own.owner, own.cores, ws.labels, bone.k, d, h0=ws.h0,
                                 theta_max=params.theta_max, coarseness=ws.prep.coarseness,

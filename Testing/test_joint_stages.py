@@ -1382,3 +1382,77 @@ def test_the_segments_sheet_is_its_middle_where_it_is_thick():
     thin = np.zeros((30, 20, 20), bool)
     thin[14:16, 2:18, 2:18] = True
     assert np.array_equal(_label_sheet(thin, 1.0, 3.0), thin)
+
+
+def test_a_small_piece_beyond_the_reach_that_continues_the_bone_alone_joins_it():
+    """A process the label stops short of (a spinous tip 12 mm beyond a 3 mm vertebra's label,
+    the reach 11 mm): an unlabelled piece beyond the merge's reach joins the bone when it
+    touches that bone alone, without a joint space, and is at most SMALL_PIECE_FRACTION of its
+    label; it is recorded. A large piece (a neighbour's body), one that touches another bone or
+    another unlabelled piece, one behind part of a joint space, or one that the grid's border
+    cuts (a rib leaving the crop) does not - nor does any without ``beyond`` (the merge as it
+    was)."""
+    shape = (10, 10, 60)
+    labels = np.zeros(shape, np.uint16)
+    labels[:, :, :20] = 1                    # 2000 voxels: a small piece is at most 60
+    labels[:, :, 50:] = 2
+    ws = np.zeros(shape, np.int32)
+    ws[4:6, 4:6, 20:35] = 3                  # the tip: 60 voxels, 15 beyond the label
+    ws[:, :, 36:46] = 4                      # large, beyond the reach
+    ws[0:2, 0:2, 20:35] = 5                  # touches bone 2 as well
+    ws[8:10, 8:10, 20:35] = 6                # a joint space on a fifth of its contact
+    ws[4:6, 0:2, 20:26] = 7                  # within the reach
+    ws[0:2, 8:10, 20:35] = 8                 # touches unlabelled piece 9
+    ws[0:2, 8:10, 47:49] = 9
+    ws[2, 6:10, 20:34] = 10                  # small (56), but cut by the grid's border (y = 9)
+    boxes = ndimage.find_objects(ws)
+    faces = {(1, 3): (4, 0), (1, 4): (100, 0), (1, 5): (4, 0), (2, 5): (1, 0), (1, 6): (5, 1),
+             (1, 7): (4, 0), (1, 8): (4, 0), (8, 9): (2, 0), (1, 10): (5, 0)}
+    beyond: set = set()
+    out = ownership._merged_pieces(faces, ws, labels, 2, range(3, 11), 1.0, reach_mm=8.0,
+                                   boxes=boxes, beyond=beyond)
+    assert sorted((p, a) for p, a, _, _ in out) == [(3, 1), (7, 1)] and beyond == {3}
+    # one voxel more and the tip is no longer small
+    ws[6, 4, 34] = 3
+    beyond = set()
+    out = ownership._merged_pieces(faces, ws, labels, 2, range(3, 11), 1.0, reach_mm=8.0,
+                                   boxes=ndimage.find_objects(ws), beyond=beyond)
+    assert [(p, a) for p, a, _, _ in out] == [(7, 1)] and beyond == set()
+    # without ``beyond``: the reach alone decides
+    ws[6, 4, 34] = 0
+    out = ownership._merged_pieces(faces, ws, labels, 2, range(3, 11), 1.0, reach_mm=8.0,
+                                   boxes=ndimage.find_objects(ws))
+    assert [(p, a) for p, a, _, _ in out] == [(7, 1)]
+    # the border piece ended one voxel short of the border: it is a tip like 3
+    ws[2, 9, 20:34] = 0
+    beyond = set()
+    out = ownership._merged_pieces(faces, ws, labels, 2, range(3, 11), 1.0, reach_mm=8.0,
+                                   boxes=ndimage.find_objects(ws), beyond=beyond)
+    assert beyond == {3, 10}
+
+
+def test_the_ownership_takes_in_a_process_tip_beyond_the_reach(monkeypatch):
+    """compute_ownership: a thin process (2 x 2 voxels, 14 mm long) continuing a labelled
+    block beyond the merge's reach (band 3 + 2 x coarseness 1 + 2 = 7 mm) is the block's, and
+    recorded as a small piece beyond the reach; without the rule it stays unlabelled bone."""
+    shape = (24, 24, 60)
+    ct = np.full(shape, 40.0, np.float32)
+    ct[4:20, 4:20, 5:31] = 1200.0
+    ct[6:18, 6:18, 7:29] = 300.0
+    ct[11:13, 11:13, 31:45] = 900.0          # the tip
+    labels = np.zeros(shape, np.uint16)
+    labels[4:20, 4:20, 5:31] = 1
+
+    def run():
+        return ownership.compute_ownership(ct, labels, 1, 1.0, h0=400.0, ht=200.0,
+                                           theta_max=2500.0, soft=40.0, contrast=1160.0,
+                                           coarseness=1.0, band_mm=3.0)
+
+    own = run()
+    assert (own.owner[11, 11, 31:45] == 1).all()
+    (tip,) = [m for m in own.info["merged_unlabelled"] if m["small_piece_beyond_reach"]]
+    assert tip["into"] == 1 and not tip["part_of_unlabelled_bone"] and own.merged is None
+    monkeypatch.setattr(ownership, "SMALL_PIECE_FRACTION", 0.0)
+    own = run()
+    assert (own.owner[11, 11, 40:45] == own.other).all()
+    assert not any(m["small_piece_beyond_reach"] for m in own.info["merged_unlabelled"])
