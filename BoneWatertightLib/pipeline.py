@@ -662,20 +662,20 @@ def initial_surface_stage(run: _Run, ws: Workspace, k: int, progress: Progress) 
 def threshold_windows(run: _Run, ws: Workspace, bone: BoneWork) -> None:
     """W_H0 and W_HT of the bone's owned voxels, and the paper's separation test."""
     params, own, d = run.params, ws.own, ws.d
-    plates = [m for m in own.info.get("merged_unlabelled", ())
-              if m.get("thin_plate_beyond_reach") and m["into"] == bone.k]
-    if plates:
-        bone.fallbacks.add("ownership", "a thin plate of unlabelled bone beyond the segment's reach "
-                           "but inside its span, continuing this bone without a joint space, was "
-                           f"taken in as this bone's ({sum(m['ml'] for m in plates):.2f} ml; the "
-                           "segment missed it)", len(plates), "pieces")
-    beyond = [m for m in own.info.get("merged_unlabelled", ())
-              if m.get("small_piece_beyond_reach") and m["into"] == bone.k]
-    if beyond:
-        bone.fallbacks.add("ownership", "a small piece of unlabelled bone beyond the segment's "
-                           "reach, touching only this bone and without a joint space, was taken "
-                           f"in as this bone's ({sum(m['ml'] for m in beyond):.2f} ml; the "
-                           "segment stopped short of a process)", len(beyond), "pieces")
+    # Unlabelled bone taken in beyond the merge's reach (ownership.merged_unlabelled), by kind.
+    for flag, what, why in (
+            ("thin_plate_beyond_reach", "a thin plate of unlabelled bone beyond the segment's "
+             "reach but inside its span, continuing this bone without a joint space,",
+             "the segment missed it"),
+            ("small_piece_beyond_reach", "a small piece of unlabelled bone beyond the segment's "
+             "reach, touching only this bone and without a joint space,",
+             "the segment stopped short of a process")):
+        taken = [m for m in own.info.get("merged_unlabelled", ())
+                 if m.get(flag) and m["into"] == bone.k]
+        if taken:
+            bone.fallbacks.add("ownership", f"{what} was taken in as this bone's "
+                               f"({sum(m['ml'] for m in taken):.2f} ml; {why})", len(taken),
+                               "pieces")
     with timed(bone.times, "threshold"):
         bone.masks = bone_masks(ws.ct_f, own.owner, own.cores, ws.labels, bone.k, d, h0=ws.h0,
                                 theta_max=params.theta_max, coarseness=ws.prep.coarseness,
