@@ -662,14 +662,17 @@ def initial_surface_stage(run: _Run, ws: Workspace, k: int, progress: Progress) 
 def threshold_windows(run: _Run, ws: Workspace, bone: BoneWork) -> None:
     """W_H0 and W_HT of the bone's owned voxels, and the paper's separation test."""
     params, own, d = run.params, ws.own, ws.d
-    # Unlabelled bone taken in beyond the merge's reach (ownership.merged_unlabelled), by kind.
+    # Unlabelled bone taken in by the merge's special cases (ownership.merged_unlabelled).
     for flag, what, why in (
             ("thin_plate_beyond_reach", "a thin plate of unlabelled bone beyond the segment's "
              "reach but inside its span, continuing this bone without a joint space,",
              "the segment missed it"),
             ("small_piece_beyond_reach", "a small piece of unlabelled bone beyond the segment's "
              "reach, touching only this bone and without a joint space,",
-             "the segment stopped short of a process")):
+             "the segment stopped short of a process"),
+            ("beside_a_joint_space", "unlabelled bone on this bone's side of a seen joint "
+             "space, with part of a joint space toward this bone too,",
+             "counted as unlabelled bone by the plausibility gate")):
         taken = [m for m in own.info.get("merged_unlabelled", ())
                  if m.get(flag) and m["into"] == bone.k]
         if taken:

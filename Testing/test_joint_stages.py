@@ -1456,3 +1456,40 @@ def test_the_ownership_takes_in_a_process_tip_beyond_the_reach(monkeypatch):
     own = run()
     assert (own.owner[11, 11, 40:45] == own.other).all()
     assert not any(m["small_piece_beyond_reach"] for m in own.info["merged_unlabelled"])
+
+
+def test_a_crumb_on_the_bones_side_of_a_seen_joint_space_joins_it():
+    """The femoral head's rim facing an unlabelled cup, outside a rough label that stops short
+    of it: an unlabelled crumb with a valley on 47 % of its contact with the femur (the joint
+    space running along the cortex on thick slices) and on all of its contact with the cup.
+    Within the reach it joins the femur (recorded in ``sided``), as it lies on the femur's side
+    of the seen joint space; not when the cup's side shows the joint space on less than
+    1 - OWN_MAX_VALLEY_FRACTION, nor when the femur's side shows more of it than the cup's,
+    nor when it touches another label too or no unlabelled bone at all, nor without
+    ``sided``."""
+    shape = (10, 10, 40)
+    labels = np.zeros(shape, np.uint16)
+    labels[:, :, :15] = 1
+    labels[:, :, 35:] = 2
+    ws = np.zeros(shape, np.int32)
+    ws[4:6, 4:6, 15:18] = 3                  # the crumb, 3 from the label
+    ws[:, :, 20:30] = 4                      # the unlabelled cup
+    boxes = ndimage.find_objects(ws)
+
+    def merge(faces, with_sided=True):
+        sided = set() if with_sided else None
+        out = ownership._merged_pieces(faces, ws, labels, 2, [3], 1.0, reach_mm=8.0,
+                                       boxes=boxes, sided=sided)
+        return [(p, a) for p, a, _, _ in out], sided
+
+    faces = {(1, 3): (132, 62), (3, 4): (48, 48)}
+    assert merge(faces) == ([(3, 1)], {3})
+    assert merge(faces, with_sided=False) == ([], None)
+    assert merge({(1, 3): (132, 62), (3, 4): (48, 38)}) == ([], set())   # 79 % toward the cup
+    assert merge({(1, 3): (132, 62), (3, 4): (48, 20)}) == ([], set())   # more toward the femur
+    assert merge({(1, 3): (132, 62), (2, 3): (10, 10), (3, 4): (48, 48)}) == ([], set())
+    assert merge({(1, 3): (132, 62)}) == ([], set())                     # touches no piece
+    # beyond the reach it stays out
+    out = ownership._merged_pieces(faces, ws, labels, 2, [3], 1.0, reach_mm=2.0, boxes=boxes,
+                                   sided=set())
+    assert out == []

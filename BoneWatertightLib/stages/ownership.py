@@ -809,8 +809,9 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     boxes = ndimage.find_objects(ws)
     reach_mm = band_mm + MERGE_REACH_COARSENESS * coarseness + MERGE_REACH_MM
     beyond: set = set()
+    sided: set = set()
     merged = _merged_pieces(faces, ws, labels, n, range(other, other + n_pieces), spacing,
-                            reach_mm=reach_mm, boxes=boxes, beyond=beyond)
+                            reach_mm=reach_mm, boxes=boxes, beyond=beyond, sided=sided)
     plates: set = set()
     merged += _enclosed_pieces(faces, merged, range(other, other + n_pieces), n, ws, labels,
                                spacing, reach_mm=reach_mm, boxes=boxes,
@@ -845,7 +846,8 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
                                    "contact_mm2": round(s, 1), "ml": round(merged_ml[p], 2),
                                    "part_of_unlabelled_bone": p in foreign,
                                    "thin_plate_beyond_reach": p in plates,
-                                   "small_piece_beyond_reach": p in beyond}
+                                   "small_piece_beyond_reach": p in beyond,
+                                   "beside_a_joint_space": p in sided}
                                   for p, a, f, s in merged]}
     if progress:
         progress(1.0, "ownership done")
@@ -1182,11 +1184,14 @@ def _plate_in_span(piece: int, a: int, ws, labels, spacing: float, max_depth_mm:
 
 
 def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
-                   reach_mm: float, boxes: list, beyond: set | None = None) -> list:
+                   reach_mm: float, boxes: list, beyond: set | None = None,
+                   sided: set | None = None) -> list:
     """Unlabelled pieces meeting a bone without a valley: the bone's own, missed by the
     segment - only what lies within ``reach_mm`` of its label (a whole neighbouring bone
     without a visible joint space does not), or a small piece beyond the reach that continues
-    the bone alone (:func:`_small_own_piece`; added to ``beyond`` when given).
+    the bone alone (:func:`_small_own_piece`; added to ``beyond`` when given). With ``sided``,
+    also a piece with a valley toward the bone that lies on the bone's side of a seen joint
+    space (:func:`_on_the_bones_side`; added to ``sided``).
     ``boxes``: ``ndimage.find_objects(ws)``. [(piece, bone, valley fraction, contact mm^2)]"""
     area = spacing ** 2
     merged = []
@@ -1201,15 +1206,45 @@ def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
         if best is None or piece > len(boxes) or boxes[piece - 1] is None:
             continue
         a, tot, vis = best
-        if vis / tot >= MERGE_MAX_VALLEY_FRACTION or tot * area < MERGE_MIN_AREA_MM2:
+        if tot * area < MERGE_MIN_AREA_MM2:
+            continue
+        side = vis / tot >= MERGE_MAX_VALLEY_FRACTION
+        if side and (sided is None or not _on_the_bones_side(piece, a, faces, n)):
             continue
         if _within_reach(piece, a, ws, labels, spacing, reach_mm, boxes):
             merged.append((piece, a, vis / tot, tot * area))
+            if side:
+                sided.add(piece)
         elif beyond is not None and _small_own_piece(piece, a, faces, ws, labels, boxes,
                                                      label_voxels):
             merged.append((piece, a, vis / tot, tot * area))
             beyond.add(piece)
     return merged
+
+
+def _on_the_bones_side(piece: int, a: int, faces: dict, n: int) -> bool:
+    """Does unlabelled ``piece``, which shows a valley toward label ``a`` on part of their
+    contact, lie on a's side of a joint space the CT shows? It touches no label but ``a``,
+    touches unlabelled bone, is separated from each unlabelled piece it touches by a seen
+    joint space (on at least 1 - OWN_MAX_VALLEY_FRACTION of that contact), and shows less of
+    one toward ``a``: a crumb of a's own cortex beside the joint, outside a label that stops
+    short of it (the femoral head's rim facing an unlabelled cup: valley 34-47 % toward the
+    femur, 97-100 % toward the cup), whose valley toward ``a`` is the joint space running
+    along the cortex on thick slices."""
+    to_a = None
+    across: list = []
+    for (x, y), (t, v) in faces.items():
+        if piece not in (x, y):
+            continue
+        other = y if x == piece else x
+        if other <= n:
+            if other != a:
+                return False
+            to_a = v / t
+        else:
+            across.append(v / t)
+    return (to_a is not None and bool(across)
+            and min(across) >= 1.0 - OWN_MAX_VALLEY_FRACTION and to_a < min(across))
 
 
 def _small_own_piece(piece: int, a: int, faces: dict, ws, labels, boxes: list,
