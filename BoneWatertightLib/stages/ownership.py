@@ -1215,11 +1215,23 @@ def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
             merged.append((piece, a, vis / tot, tot * area))
             if side:
                 sided.add(piece)
-        elif beyond is not None and _small_own_piece(piece, a, faces, ws, labels, boxes,
+        elif beyond is not None and _small_own_piece(piece, a, faces, n, ws, labels, boxes,
                                                      label_voxels):
             merged.append((piece, a, vis / tot, tot * area))
             beyond.add(piece)
     return merged
+
+
+def _contacts_of(piece: int, faces: dict, n: int) -> tuple:
+    """The contacts of unlabelled ``piece`` (``faces`` of :func:`_interfaces`): ({label:
+    (faces, of which with a valley)}, {other unlabelled piece: (faces, with a valley)})."""
+    labels_: dict = {}
+    pieces: dict = {}
+    for (x, y), tv in faces.items():
+        if piece in (x, y):
+            other = y if x == piece else x
+            (labels_ if other <= n else pieces)[other] = tv
+    return labels_, pieces
 
 
 def _on_the_bones_side(piece: int, a: int, faces: dict, n: int) -> bool:
@@ -1231,23 +1243,15 @@ def _on_the_bones_side(piece: int, a: int, faces: dict, n: int) -> bool:
     short of it (the femoral head's rim facing an unlabelled cup: valley 34-47 % toward the
     femur, 97-100 % toward the cup), whose valley toward ``a`` is the joint space running
     along the cortex on thick slices."""
-    to_a = None
-    across: list = []
-    for (x, y), (t, v) in faces.items():
-        if piece not in (x, y):
-            continue
-        other = y if x == piece else x
-        if other <= n:
-            if other != a:
-                return False
-            to_a = v / t
-        else:
-            across.append(v / t)
-    return (to_a is not None and bool(across)
-            and min(across) >= 1.0 - OWN_MAX_VALLEY_FRACTION and to_a < min(across))
+    labels_, pieces = _contacts_of(piece, faces, n)
+    if set(labels_) != {a} or not pieces:
+        return False
+    across = min(v / t for t, v in pieces.values())
+    t, v = labels_[a]
+    return across >= 1.0 - OWN_MAX_VALLEY_FRACTION and v / t < across
 
 
-def _small_own_piece(piece: int, a: int, faces: dict, ws, labels, boxes: list,
+def _small_own_piece(piece: int, a: int, faces: dict, n: int, ws, labels, boxes: list,
                      label_voxels: dict) -> bool:
     """Is unlabelled ``piece`` (beyond the merge's reach of label ``a``) a's own process that
     the segment stopped short of - a spinous tip 12 mm beyond a 3 mm vertebra's label? It
@@ -1261,14 +1265,11 @@ def _small_own_piece(piece: int, a: int, faces: dict, ws, labels, boxes: list,
     box = boxes[piece - 1]
     if any(b.start == 0 or b.stop == size for b, size in zip(box, ws.shape)):
         return False
-    tot = vis = 0
-    for (x, y), (t, v) in faces.items():
-        if piece not in (x, y):
-            continue
-        if (y if x == piece else x) != a:
-            return False
-        tot, vis = tot + t, vis + v
-    if not tot or vis / tot >= OWN_MAX_VALLEY_FRACTION:
+    labels_, pieces = _contacts_of(piece, faces, n)
+    if pieces or set(labels_) != {a}:
+        return False
+    tot, vis = labels_[a]
+    if vis / tot >= OWN_MAX_VALLEY_FRACTION:
         return False
     if a not in label_voxels:
         label_voxels[a] = int(np.count_nonzero(labels == a))
