@@ -10,30 +10,36 @@ from test_pipeline import sphere_mesh
 
 
 def test_slab_level_is_the_half_maximum_for_thick_cortex_and_rises_for_thin():
-    assert refine.slab_edge_level(1.0) == pytest.approx(0.5, abs=1e-6)
-    # w = 2 s: the peak is 2 Phi(1) - 1 = 0.683 of the contrast, the border at
-    # (Phi(2) - 1/2) / 0.683 = 0.698 of the peak
+    assert refine.slab_edge_level(1.0) == pytest.approx(0.5, abs=0.03)
+    # a slab with nothing behind it (fall 1), w = 2 s: its peak is 2 Phi(1) - 1 = 0.683 of the
+    # contrast, its border at (Phi(2) - 1/2) / 0.683 = 0.698 of the peak (the profile's valley,
+    # measured 2 mm outside the peak as a profile is, is a little above the soft tissue)
     q = 2 * ndtr(1.0) - 1
-    assert refine.slab_edge_level(q) == pytest.approx((ndtr(2.0) - 0.5) / q, abs=1e-6)
+    assert refine.slab_edge_level(q) == pytest.approx((ndtr(2.0) - 0.5) / q, abs=0.03)
     levels = refine.slab_edge_level(np.linspace(0.3, 1.0, 15))
     assert np.all(np.diff(levels) <= 1e-12) and levels[0] <= refine.SLAB_LEVEL_RANGE[1]
-    # a step (the profile does not fall behind its peak) keeps the half maximum
-    assert refine.slab_edge_level(q, fall=0.0) == pytest.approx(0.5)
-    assert refine.slab_edge_level(q, fall=0.5) == pytest.approx(0.5 + 0.5 * (0.698 - 0.5),
-                                                                 abs=2e-3)
+    # a step (the profile does not fall behind its peak) keeps about the half maximum
+    assert refine.slab_edge_level(q, fall=0.0) == pytest.approx(0.5, abs=0.03)
+    # a thin cortex over cancellous bone falls part of the way: its border is much nearer the
+    # slab's level than the half maximum (the level a linear blend of the two gave: 0.62)
+    assert refine.slab_edge_level(0.3, fall=0.3) > 0.7
+    assert np.all(np.diff(refine.slab_edge_level(0.4, np.linspace(0, 1, 11))) > -0.03)
+    # a profile without a contrast (NaN) gets no level, as before (no edge there)
+    assert np.isnan(refine.slab_edge_level(np.array([0.5, np.nan]), np.array([np.nan, 0.3]))).all()
 
 
-def _half_thin_ball(radius=12.0, thin=0.8, d=0.25, blur=0.8, solid_top=True):
-    """A ball whose upper half (z > 0) is solid cortex (1500 HU) and whose lower half is a
-    cortex ``thin`` mm thick around fat marrow (-50 HU), in soft tissue (40 HU), blurred;
-    without ``solid_top`` the cortex is thin everywhere."""
+def _half_thin_ball(radius=12.0, thin=0.8, d=0.25, blur=0.8, solid_top=True, cortex=1500.0,
+                    marrow=-50.0):
+    """A ball whose upper half (z > 0) is solid cortex (``cortex`` HU) and whose lower half is
+    a cortex ``thin`` mm thick around ``marrow`` (HU; fat by default), in soft tissue (40 HU),
+    blurred by a Gaussian of ``blur`` mm; without ``solid_top`` the cortex is thin everywhere."""
     n = int(2 * (radius + 6) / d)
     g = (np.arange(n) + 0.5) * d - (radius + 6)
     z, y, x = np.meshgrid(g, g, g, indexing="ij")
     r = np.sqrt(x * x + y * y + z * z)
     ct = np.full(r.shape, 40.0)
-    ct[r <= radius] = -50.0
-    ct[(r <= radius) & (((z > 0) & solid_top) | (r > radius - thin))] = 1500.0
+    ct[r <= radius] = marrow
+    ct[(r <= radius) & (((z > 0) & solid_top) | (r > radius - thin))] = cortex
     ct = ndimage.gaussian_filter(ct, blur / d).astype(np.float32)
     return ct, d, radius + 6 - 0.5 * d  # grid millimetres = index * d
 
@@ -59,6 +65,25 @@ def test_auto_level_finds_the_border_of_thin_cortex_where_the_half_maximum_is_ou
     # where the cortex is thick both are the half maximum
     assert abs(thick_auto - thick_half) < 0.05
     assert abs(thick_auto) < 0.1
+
+
+def test_auto_level_finds_the_border_of_thin_cortex_over_cancellous_bone_on_thick_slices():
+    """A ball whose lower half is a 0.7 mm cortex (1250 HU) over cancellous bone (170 HU), its
+    upper half solid cortex, blurred by 1.3 mm (a vertebral body on 3 mm slices): the profile
+    falls only ~0.3 behind its peak, and the half maximum lies 0.8 mm outside the border. The
+    level the model gives for such a fall finds the border (a blend of the half maximum and
+    the slab's level by the fall left it 0.28 mm outside)."""
+    ct, d, shift = _half_thin_ball(thin=0.7, blur=1.3, cortex=1250.0, marrow=170.0)
+    s = sphere_mesh(12.3, 0.6)
+    err = {}
+    for level in (0.5, None):
+        out, _, frac, _ = refine.refine_to_edges(s.vertices + shift, s.faces, ct, d, ht=200.0,
+                                                 edge_level=level)
+        p = out - shift
+        err[level] = float((np.linalg.norm(p, axis=1) - 12.0)[p[:, 2] < -3.0].mean())
+        assert frac > 0.95
+    assert err[0.5] > 0.6
+    assert abs(err[None]) < 0.15
 
 
 def test_the_edge_is_the_outer_layers_not_a_dip_inside_a_shell():

@@ -11,6 +11,8 @@ checks the result and keeps the unrefined surface if a check fails. ``refine_edg
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -56,12 +58,20 @@ OUTSIDE_HU = -1000.0
 SLAB_REFERENCE_PERCENTILE = 90.0
 SLAB_MIN_RATIO = 0.3
 SLAB_LEVEL_RANGE = (0.5, 0.9)
-# The model holds for a cortex with low-density marrow behind it (the profile falls again
-# inside the peak). Behind a thin cortex filled with cancellous bone (a vertebral body at 3 mm)
-# the profile is a step up to the interior, whose edge is the half maximum: the correction is
-# scaled by how far the profile falls within SLAB_INNER_MM inside the peak, as a fraction of the
-# peak - valley contrast.
+# Behind a thin cortex the bone may be cancellous (a vertebral body, a process) rather than
+# marrow: the profile then falls only part of the way within SLAB_INNER_MM inside its peak. The
+# level for such a profile comes from the same model with an interior behind the cortex - a
+# cortex of thickness w and contrast 1 over an interior of contrast b, blurred by a Gaussian of
+# width s - sampled over SLAB_MODEL_SIGMA_MM x SLAB_MODEL_THICKNESS_MM x SLAB_MODEL_INTERIOR and
+# measured as a profile is (peak, valley, the fall within SLAB_INNER_MM): the median level at the
+# true border in each cell of (contrast ratio, fall). A little fall already means a thin cortex:
+# on 3 mm slices a 0.7 mm cortex over cancellous bone falls by ~0.3 and crosses its border at
+# ~0.87 of its peak (the half maximum lies ~0.8 mm outside it).
 SLAB_INNER_MM = 2.0
+SLAB_MODEL_SIGMA_MM = (0.5, 2.2, 18)           # blur widths (mm): fine to 3 mm slices
+SLAB_MODEL_THICKNESS_MM = (0.1, 8.0, 30)       # cortex thickness (mm), log-spaced
+SLAB_MODEL_INTERIOR = (-0.15, 0.5, 14)         # interior / cortical contrast: fat to dense
+SLAB_MODEL_BINS = (15, 10)                     # cells of (contrast ratio, fall)
 # A vertex whose shift differs from its 1-ring's mean by more than
 # max(OUTLIER_MM, OUTLIER_VOXELS * spacing) gets no target.
 OUTLIER_MM = 0.4
@@ -74,14 +84,66 @@ BACKOFF_HALVINGS = 3
 def slab_edge_level(ratio, fall=1.0):
     """The blurred-slab model's edge level (see the module constants) for a profile whose
     contrast is ``ratio`` (array) of the full contrast and which falls by ``fall`` (array, a
-    fraction of its contrast) inside its peak: 0.5 for a step (fall 0), the model's level for
-    a slab with nothing behind it (fall 1)."""
-    from scipy.special import ndtr, ndtri
+    fraction of its contrast) inside its peak: about the half maximum for a step (no fall,
+    full contrast), up to SLAB_LEVEL_RANGE[1] for a thin cortex."""
+    q_axis, f_axis, table = _slab_level_table()
+    q, f = np.broadcast_arrays(np.asarray(ratio, dtype=np.float64),
+                               np.asarray(fall, dtype=np.float64))
+    known = ~(np.isnan(q) | np.isnan(f))  # no level for a profile without a contrast
+    q = np.clip(np.where(known, q, 1.0), q_axis[0], q_axis[-1])
+    f = np.clip(np.where(known, f, 0.0), f_axis[0], f_axis[-1])
+    qi = np.interp(q, q_axis, np.arange(len(q_axis)))
+    fi = np.interp(f, f_axis, np.arange(len(f_axis)))
+    q0 = np.minimum(np.floor(qi).astype(int), len(q_axis) - 2)
+    f0 = np.minimum(np.floor(fi).astype(int), len(f_axis) - 2)
+    a, b = qi - q0, fi - f0
+    level = ((1 - a) * (1 - b) * table[q0, f0] + a * (1 - b) * table[q0 + 1, f0]
+             + (1 - a) * b * table[q0, f0 + 1] + a * b * table[q0 + 1, f0 + 1])
+    return np.where(known, np.clip(level, *SLAB_LEVEL_RANGE), np.nan)
 
-    q = np.clip(np.asarray(ratio, dtype=np.float64), SLAB_MIN_RATIO, 1.0 - 1e-9)
-    a = 2.0 * ndtri(0.5 * (1.0 + q))  # w / s
-    full = np.clip((ndtr(a) - 0.5) / q, *SLAB_LEVEL_RANGE)
-    return 0.5 + np.clip(fall, 0.0, 1.0) * (full - 0.5)
+
+@functools.lru_cache(maxsize=1)
+def _slab_level_table():
+    """(ratio axis (m,), fall axis (k,), level (m, k)): the median level at the true border of
+    model profiles (see the module constants) by their contrast ratio and fall, each measured
+    as :func:`sample_profiles` and :func:`contrast_reference` measure a profile (the valley
+    within VALLEY_REACH_MM outside the peak, the fall within SLAB_INNER_MM inside it, the
+    ratio to the contrast of a thick cortex at the same blur). Cells no model profile reaches
+    take the nearest reached cell's level."""
+    from scipy.special import ndtr
+
+    x = np.arange(PROFILE_RANGE_MM[0], PROFILE_RANGE_MM[1] + 1e-9, PROFILE_STEP_MM)  # outward
+    s = np.linspace(*SLAB_MODEL_SIGMA_MM)
+    w = np.exp(np.linspace(np.log(SLAB_MODEL_THICKNESS_MM[0]), np.log(SLAB_MODEL_THICKNESS_MM[1]),
+                           SLAB_MODEL_THICKNESS_MM[2]))
+    b = np.linspace(*SLAB_MODEL_INTERIOR)
+    S, W, B = (g.ravel()[:, None] for g in np.meshgrid(s, w, b, indexing="ij"))
+    inner_edge = ndtr((-W - x[None, :]) / S)
+    prof = B * inner_edge + ndtr(-x[None, :] / S) - inner_edge  # border at x = 0
+    i_peak = np.argmax(prof[:, :int(np.count_nonzero(x <= PEAK_REACH_MM))], axis=1)
+    peak = prof[np.arange(len(prof)), i_peak]
+    valley, inner = _valley_and_inner(x, prof, i_peak, peak)
+    contrast = peak - valley
+    at_border = prof[:, int(np.argmin(np.abs(x)))]
+    level = (at_border - valley) / contrast
+    fall = np.clip((peak - inner) / contrast, 0.0, 1.0)
+    thick = contrast.reshape(len(s), len(w), len(b))[:, -1, :].max(axis=1)  # per blur
+    ratio = contrast / np.repeat(thick, len(w) * len(b))[:, None].ravel()
+    nq, nf = SLAB_MODEL_BINS
+    q_axis = np.linspace(SLAB_MIN_RATIO, 1.0, nq)
+    f_axis = np.linspace(0.0, 1.0, nf)
+    qi = np.clip(np.rint((ratio - q_axis[0]) / (q_axis[1] - q_axis[0])), 0, nq - 1).astype(int)
+    fi = np.clip(np.rint(fall / (f_axis[1] - f_axis[0])), 0, nf - 1).astype(int)
+    keep = (ratio >= q_axis[0] - 0.5 * (q_axis[1] - q_axis[0])) & (ratio <= 1.0) & (contrast > 0)
+    table = np.full((nq, nf), np.nan)
+    for cell in set(zip(qi[keep].tolist(), fi[keep].tolist())):
+        m = keep & (qi == cell[0]) & (fi == cell[1])
+        table[cell] = np.median(level[m])
+    filled = np.argwhere(np.isfinite(table))
+    for cell in np.argwhere(~np.isfinite(table)):
+        near = filled[np.argmin(np.abs(filled - cell).sum(axis=1))]
+        table[tuple(cell)] = table[tuple(near)]
+    return q_axis, f_axis, table
 
 
 def sample_profiles(vertices, faces, ct_smooth, spacing):
