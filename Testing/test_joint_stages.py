@@ -1,6 +1,8 @@
 """The stages of the joint-aware pipeline: caps at the image boundary, marker flooding,
 ownership at a joint, keeping surfaces apart, plausibility gates."""
 
+import os
+
 import numpy as np
 from scipy import ndimage
 import pytest
@@ -506,6 +508,24 @@ def test_keep_gap_exact_opens_a_gap_the_fields_left_too_small():
     assert na == nb == 0 and gap >= 0.3 - 1e-6
     c = _grid_sphere(5.0, (20.0, 20.0, 60.0))
     assert contacts.keep_gap_exact(a[0], a[1], c[0], c[1], 0.3)[4] is None
+
+
+def test_keep_gap_exact_moves_the_other_surface_where_a_vertex_cannot_move():
+    """Found on the 2.0 mm joint phantom with AI-style labels (seed 5): a vertex at the cup's
+    rim, 0.16 mm from the femoral head, whose move away (and its ring's relaxation) each
+    crossed the cup's own surface; the head's face next to it never moved, as no vertex of
+    the head was within the gap, and the gap stayed 0.16 mm (< min_gap 0.2, warned). The
+    head's nearest face now moves instead. Data: the two surfaces within 4 mm of the contact
+    (``Data/cup_rim_contact.npz``, mm about a rounded centre)."""
+    z = np.load(os.path.join(os.path.dirname(__file__), "Data", "cup_rim_contact.npz"))
+    va, vb = z["va"].astype(np.float64), z["vb"].astype(np.float64)
+    fa, fb = z["fa"].astype(np.int64), z["fb"].astype(np.int64)
+    assert contacts.pair_report(va, fa, vb, fb)["min_gap_mm"] < 0.17
+    oa, ob, na, nb, gap = contacts.keep_gap_exact(va, fa, vb, fb, 0.2)
+    after = contacts.pair_report(oa, fa, ob, fb)
+    assert after["crossing_face_pairs"] == 0 and after["min_gap_mm"] >= 0.2 - 1e-6
+    assert 0 < na <= 6 and gap >= 0.2 - 1e-6
+    assert np.linalg.norm(oa - va, axis=1).max() < 0.2
 
 
 def test_resolve_contacts_gives_the_same_surfaces_on_two_threads():
