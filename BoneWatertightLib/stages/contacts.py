@@ -460,22 +460,34 @@ def _nearest_face_moves(points, directions, steps, other):
     """(vertex indices (m,), moves (m, 3)) of the surface ``other`` = (vertices, faces) that
     take the corners of its face nearest each of ``points`` (k, 3) by ``steps`` (k,) along
     ``directions`` (k, 3, unit); a corner of several such faces takes the largest move."""
-    from .. import _vtk as vtk
-
     ov, of = other
-    locator = vtk.vtkCellLocator()
-    locator.SetDataSet(to_polydata(Surface(ov, of), normals=False))
-    locator.BuildLocator()
-    closest, cell, sub, d2 = [0.0, 0.0, 0.0], vtk.reference(0), vtk.reference(0), vtk.reference(0.0)
     moves = {}
-    for p, u, step in zip(points, directions, steps):
-        locator.FindClosestPoint(p, closest, cell, sub, d2)
-        for k in of[int(cell)]:
+    for cell, u, step in zip(_closest_faces(points, ov, of)[0], directions, steps):
+        for k in of[cell]:
             m = step * u
             if int(k) not in moves or np.dot(m, m) > np.dot(moves[int(k)], moves[int(k)]):
                 moves[int(k)] = m
     ids = np.fromiter(moves, dtype=np.int64, count=len(moves))
     return ids, np.array([moves[int(k)] for k in ids]).reshape(-1, 3)
+
+
+def _closest_faces(points, v, f) -> tuple:
+    """(face index (k,) int, exact distance (k,) mm) of the face of the surface (v, f) nearest
+    each of ``points`` (k, 3)."""
+    from .. import _vtk as vtk
+
+    loc = vtk.vtkCellLocator()
+    loc.SetDataSet(to_polydata(Surface(v, f), normals=False))
+    loc.BuildLocator()
+    ids = np.empty(len(points), np.int64)
+    d = np.empty(len(points))
+    closest = [0.0, 0.0, 0.0]
+    cell, sub, dist2 = vtk.reference(0), vtk.reference(0), vtk.reference(0.0)
+    for i, p in enumerate(points):
+        loc.FindClosestPoint(p, closest, cell, sub, dist2)
+        ids[i] = int(cell)
+        d[i] = float(dist2) ** 0.5
+    return ids, d
 
 
 def _close_vertices(v, other_v, other_f, gap: float):
@@ -567,17 +579,7 @@ def pair_report(va, fa, vb, fb, crossing_only: bool = False) -> dict:
         return out
 
     def distances(points, v, f):
-        loc = vtk.vtkCellLocator()
-        poly = to_polydata(Surface(v, f), normals=False)
-        loc.SetDataSet(poly)
-        loc.BuildLocator()
-        d = np.empty(len(points))
-        closest = [0.0, 0.0, 0.0]
-        cell, sub, dist2 = vtk.reference(0), vtk.reference(0), vtk.reference(0.0)
-        for i, p in enumerate(points):
-            loc.FindClosestPoint(p, closest, cell, sub, dist2)
-            d[i] = float(dist2) ** 0.5
-        return d
+        return _closest_faces(points, v, f)[1]
 
     def inside(points, v, f):
         if len(points) == 0:
