@@ -804,7 +804,9 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     fusion = _poisson.Fusion(label=trusted,
                              label_origin=np.zeros(3), label_spacing=d,
                              genus=genus,
-                             close_mm=(ws.prep.coarseness,), bone=masks.w_ht, carve=carve)
+                             close_mm=(ws.prep.coarseness,), bone=masks.w_ht, carve=carve,
+                             strong=(ws.ct_f[masks.box] >= ws.h0)
+                             & (ws.ct_f[masks.box] <= params.theta_max))
     # A thin process of the bone's own (a sacral tip at 3 mm) that Poisson at depth 7
     # detaches as a small component is joined back from the bone the thresholds hold -
     # inside the image: beyond a cap plane the grid only continues the border slice.

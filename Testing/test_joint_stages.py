@@ -1326,6 +1326,40 @@ def test_m0_tunnels_in_a_plate_a_voxel_thick_are_plugged_from_the_bone_last():
             assert surface_genus(out) == 1 and info["thin_plate_plugs"] == 0
 
 
+@pytest.mark.parametrize("ct_shows", ["bone", "strong", "neither"])
+def test_a_tunnel_the_segment_covers_is_plugged_whatever_its_genus(ct_shows):
+    """A hole in a plate a voxel thick, where the segment is solid but has a tunnel of its own
+    elsewhere (genus 1, as many as the surface): plugged from the bone the thresholds hold, or
+    from the CT in the initial window where the paper's opening took the plate out of W_HT
+    (``covered_plate_plugs``); a hole the CT shows dark stays, whatever the segment says
+    (held-out hip bone, 0.7 x 2.5 mm: a 600 HU acetabular floor pierced twice, its lace-like
+    label of genus 4)."""
+    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, contour, surface_genus
+
+    z, y, x = np.indices((21, 41, 41)).astype(float)
+    square = (np.abs(y - 20) < 15) & (np.abs(x - 20) < 15)
+    plate = (z == 10) & square
+    hole = np.hypot(x - 20, y - 20) < 3.0
+    occ = ndimage.binary_dilation(plate) & ~ndimage.binary_dilation(hole)
+    field = ndimage.gaussian_filter(occ.astype(np.float32), 0.8)
+    lo = np.zeros(3)
+    m0 = contour(field, lo, 1.0, 0.5, 0, relax=False)
+    assert surface_genus(m0) == 1
+    bone = plate if ct_shows == "bone" else plate & ~hole
+    strong = plate if ct_shows == "strong" else plate & ~hole
+    fusion = Fusion(label=ndimage.binary_dilation(plate), label_origin=np.zeros(3),
+                    label_spacing=1.0, genus=1, close_mm=(3.0,), bone=bone, strong=strong)
+    out = _fill_tunnels(m0, field.copy(), lo, 1.0, fusion, 0)
+    info = fusion.info
+    assert info["plugs"] == 0 and info["narrow_plugs"] == 0 and info["thin_plate_plugs"] == 0
+    if ct_shows == "neither":
+        assert surface_genus(out) == 1 and info["covered_plate_plugs"] == 0
+    else:
+        assert surface_genus(out) == 0 and info["genus_after"] == 0
+        assert info["covered_plate_plugs"] >= 1 and info["bone_fill_mm3"] > 0
+        assert fusion.fill_mask is None  # CT evidence, not the segment's
+
+
 def test_the_threshold_advice_follows_where_the_thresholds_came_from():
     """Too little of the bone selected: the user's own H0/HT can go back to the estimate; when
     they were estimated already, the advice is to set them lower (not "use automatic ones")."""
@@ -1512,4 +1546,33 @@ def test_a_crumb_on_the_bones_side_of_a_seen_joint_space_joins_it():
     # beyond the reach it stays out
     out = ownership._merged_pieces(faces, ws, labels, 2, [3], 1.0, reach_mm=2.0, boxes=boxes,
                                    sided=set())
+    assert out == []
+
+
+def test_a_crumb_beside_a_joint_that_touches_a_merged_crumb_joins_the_bone_too():
+    """Held-out femur phantom (seed 89): a crumb of the head's cortex under the cup's rim (valley
+    on 36 % of its contact with the femur, 89 % with the cup) also touches a second crumb that
+    joins the femur (valley 20 %), with a valley on half of that contact: a contact with bone
+    the femur took in counts as the femur's, so the first crumb joins it too (it stayed
+    unlabelled bone and dented the head by 1.1 mm). A crumb touching a piece that stays out
+    does not."""
+    shape = (10, 10, 40)
+    labels = np.zeros(shape, np.uint16)
+    labels[:, :, :15] = 1
+    labels[:, :, 35:] = 2
+    ws = np.zeros(shape, np.int32)
+    ws[4:6, 4:6, 15:18] = 3                  # the crumb under the rim
+    ws[6:8, 4:6, 15:17] = 5                  # a crumb of the same cortex beside it
+    ws[:, :, 20:30] = 4                      # the unlabelled cup
+    boxes = ndimage.find_objects(ws)
+    faces = {(1, 3): (121, 44), (3, 4): (19, 17), (3, 5): (12, 6),
+             (1, 5): (85, 17), (4, 5): (13, 10)}
+    sided = set()
+    out = ownership._merged_pieces(faces, ws, labels, 2, [3, 5], 1.0, reach_mm=8.0,
+                                   boxes=boxes, sided=sided)
+    assert sorted((p, a) for p, a, _, _ in out) == [(3, 1), (5, 1)] and sided == {3}
+    # the second crumb with a valley toward the femur on most of its contact: neither joins
+    faces[(1, 5)] = (85, 60)
+    out = ownership._merged_pieces(faces, ws, labels, 2, [3, 5], 1.0, reach_mm=8.0,
+                                   boxes=boxes, sided=set())
     assert out == []

@@ -251,6 +251,10 @@ class Fusion:
     foramen): where tunnels remain after the segment's fill, plugs of them from it (a plate the
     thresholds hold two or three voxels thick, which Poisson at depth 7 cannot resolve and
     opens, while the segment is lace there too).
+    ``strong``: optional (z, y, x) bool on the label's grid, where the CT is in the initial
+    window [H0, theta_max]: with ``bone`` and inside the segment, the source of plugs for the
+    tunnels left whatever the segment's genus (a plate a voxel thin, which the paper's opening
+    takes out of W_H0 and W_HT, is still H0 on the CT).
     ``carve``: optional (z, y, x) bool on the label's grid, voxels that are neither bone on
     the CT nor the segment (:func:`carve_region`): the occupancy is cut back out of them before
     contouring (Poisson closes over tunnels and deep concavities it cannot see into, e.g. a
@@ -271,6 +275,7 @@ class Fusion:
     # the surface is kept out of it.
     carve: np.ndarray = None
     bone: np.ndarray = None
+    strong: np.ndarray = None
     # (z, y, x) bool on the label's grid: the bone's own solid occupancy on the CT (owned W_HT,
     # solidified). Parts of it that the Poisson surface misses by more than ``solid_reach_mm``
     # are joined with the solid between them and the surface (a thin process that Poisson at
@@ -681,13 +686,16 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
     5. While tunnels the segment does not have remain: plugs from ``fusion.bone`` again, now also
        of its plates thinner than the normals' smoothing (:func:`_plugs`' ``ridges``), all of
        them however small in the first trial (``thin_plate_plugs``).
+    6. Whatever the segment's genus, while tunnels remain: the same plugs from the bone (and
+       the CT in the initial window, ``fusion.strong``) that the segment also covers
+       (``covered_plate_plugs``): a hole neither the CT nor the segment has there.
     At most FILL_MAX_TRIALS contours per source; what was done is recorded in
     ``fusion.info`` (``narrow_plugs``, ``narrow_fill_mm3``, ``narrow_radius_mm``)."""
     genus = surface_genus(out)
     fusion.info.update(genus_before=int(genus), segment_genus=int(fusion.genus),
                        label_fill_voxels=0, label_fill_mm3=0.0, plugs=0, fill_trials=0,
                        bone_plugs=0, bone_fill_mm3=0.0, narrow_plugs=0, narrow_fill_mm3=0.0,
-                       thin_plate_plugs=0)
+                       thin_plate_plugs=0, covered_plate_plugs=0)
     if genus <= fusion.genus and (fusion.bone is None or genus == 0):
         fusion.info["genus_after"] = int(genus)
         return out
@@ -793,6 +801,18 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         fusion.info["thin_plate_plugs"] = plug_holes(bone, trials + FILL_MAX_TRIALS,
                                                      fusion.genus, thin=True)
         fusion.info["bone_plugs"] += fusion.info["thin_plate_plugs"]
+        fusion.info["bone_fill_mm3"] += float((filled & ~before).sum() * h ** 3)
+    if bone is not None and genus > 0:
+        # Whatever the segment's genus: a tunnel through a plate that the CT shows as bone and
+        # the segment covers is a hole neither has there (the segment's own tunnels may lie
+        # elsewhere: a lace-like label of a hip bone has 4 while the surface loses a 600 HU
+        # acetabular floor a voxel thick). Plugs of that plate, however thin, all together first.
+        before = filled.copy()
+        covered = bone if fusion.strong is None else \
+            bone | _label_on(fusion, field_zyx.shape, lo, h, fusion.strong)
+        fusion.info["covered_plate_plugs"] = plug_holes(covered & label,
+                                                        trials + FILL_MAX_TRIALS, 0, thin=True)
+        fusion.info["bone_plugs"] += fusion.info["covered_plate_plugs"]
         fusion.info["bone_fill_mm3"] += float((filled & ~before).sum() * h ** 3)
     if filled.any():
         out = contour(field_zyx, lo, h, 0.5, smooth_iterations, info=fusion.info)
