@@ -1297,22 +1297,31 @@ def test_plugs_of_a_hole_in_a_plate_thinner_than_the_smoothing(step):
     assert margin_size.max() < FILL_MIN_VOXELS
 
 
+def _pierced_plate():
+    """A plate one grid step thick (z = 10 of a (21, 41, 41) grid, 1 mm) and M0 of it pierced by
+    a round hole 6 mm across: (plate, hole, occupancy, field, lo, m0), all (z, y, x)."""
+    from BoneWatertightLib.stages.poisson import contour, surface_genus
+
+    z, y, x = np.indices((21, 41, 41)).astype(float)
+    square = (np.abs(y - 20) < 15) & (np.abs(x - 20) < 15)
+    plate = (z == 10) & square
+    hole = np.hypot(x - 20, y - 20) < 3.0
+    occ = ndimage.binary_dilation(plate) & ~ndimage.binary_dilation(hole)
+    field = ndimage.gaussian_filter(occ.astype(np.float32), 0.8)
+    lo = np.zeros(3)
+    m0 = contour(field, lo, 1.0, 0.5, 0, relax=False)
+    assert surface_genus(m0) == 1
+    return plate, hole, occ, field, lo, m0
+
+
 def test_m0_tunnels_in_a_plate_a_voxel_thick_are_plugged_from_the_bone_last():
     """A hole in a plate of thresholded bone one grid step thick that the segment (lace there,
     its genus 0 at its own resolution) cannot plug, too wide for the narrow plugs: the last
     step plugs it from the bone's thin plates (``thin_plate_plugs``); a segment that has the
     tunnel keeps it."""
-    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, contour, surface_genus
+    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, surface_genus
 
-    z, y, x = np.indices((21, 41, 41)).astype(float)
-    square = (np.abs(y - 20) < 15) & (np.abs(x - 20) < 15)
-    bone = (z == 10) & square
-    hole = np.hypot(x - 20, y - 20) < 3.0
-    occ = ndimage.binary_dilation(bone) & ~ndimage.binary_dilation(hole)
-    field = ndimage.gaussian_filter(occ.astype(np.float32), 0.8)
-    lo = np.zeros(3)
-    m0 = contour(field, lo, 1.0, 0.5, 0, relax=False)
-    assert surface_genus(m0) == 1
+    bone, hole, occ, field, lo, m0 = _pierced_plate()
     for segment_genus in (0, 1):
         fusion = Fusion(label=occ & ~hole, label_origin=np.zeros(3), label_spacing=1.0,
                         genus=segment_genus, close_mm=(3.0,), bone=bone)
@@ -1332,19 +1341,11 @@ def test_a_tunnel_the_segment_covers_is_plugged_whatever_its_genus(ct_shows):
     elsewhere (genus 1, as many as the surface): plugged from the bone the thresholds hold, or
     from the CT in the initial window where the paper's opening took the plate out of W_HT
     (``covered_plate_plugs``); a hole the CT shows dark stays, whatever the segment says
-    (held-out hip bone, 0.7 x 2.5 mm: a 600 HU acetabular floor pierced twice, its lace-like
-    label of genus 4)."""
-    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, contour, surface_genus
+    (held-out hip bone, 0.7 x 2.5 mm: a 470-890 HU acetabular floor pierced twice, its
+    lace-like label of genus 4)."""
+    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, surface_genus
 
-    z, y, x = np.indices((21, 41, 41)).astype(float)
-    square = (np.abs(y - 20) < 15) & (np.abs(x - 20) < 15)
-    plate = (z == 10) & square
-    hole = np.hypot(x - 20, y - 20) < 3.0
-    occ = ndimage.binary_dilation(plate) & ~ndimage.binary_dilation(hole)
-    field = ndimage.gaussian_filter(occ.astype(np.float32), 0.8)
-    lo = np.zeros(3)
-    m0 = contour(field, lo, 1.0, 0.5, 0, relax=False)
-    assert surface_genus(m0) == 1
+    plate, hole, _, field, lo, m0 = _pierced_plate()
     bone = plate if ct_shows == "bone" else plate & ~hole
     strong = plate if ct_shows == "strong" else plate & ~hole
     fusion = Fusion(label=ndimage.binary_dilation(plate), label_origin=np.zeros(3),

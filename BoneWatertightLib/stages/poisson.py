@@ -805,7 +805,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
     if bone is not None and genus > 0:
         # Whatever the segment's genus: a tunnel through a plate that the CT shows as bone and
         # the segment covers is a hole neither has there (the segment's own tunnels may lie
-        # elsewhere: a lace-like label of a hip bone has 4 while the surface loses a 600 HU
+        # elsewhere: a lace-like label of a hip bone has 4 while the surface loses a 470-890 HU
         # acetabular floor a voxel thick). Plugs of that plate, however thin, all together first.
         before = filled.copy()
         covered = bone if fusion.strong is None else \
