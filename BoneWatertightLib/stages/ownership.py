@@ -1191,7 +1191,8 @@ def _merged_pieces(faces: dict, ws, labels, n: int, pieces, spacing: float,
     without a visible joint space does not), or a small piece beyond the reach that continues
     the bone alone (:func:`_small_own_piece`; added to ``beyond`` when given). With ``sided``,
     also a piece with a valley toward the bone that lies on the bone's side of a seen joint
-    space (:func:`_on_the_bones_side`; added to ``sided``).
+    space (:func:`_on_the_bones_side`; added to ``sided``), then, repeated until none joins, such
+    a piece whose contact with unlabelled bone is partly with pieces taken in already.
     ``boxes``: ``ndimage.find_objects(ws)``. [(piece, bone, valley fraction, contact mm^2)]"""
     area = spacing ** 2
     merged = []
