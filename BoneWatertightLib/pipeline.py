@@ -787,11 +787,13 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     # normals and the carved region, which do not depend on it. The carve: where neither the
     # CT nor the segment has bone, M0 has none either (Poisson closes over what the views do
     # not see into: a curved canal, a deep notch).
+    ct_box = ws.ct_f[masks.box]
+
     def part(i):
         if i == 0:
             return _plaus.segment_genus(trusted, d, ws.prep.coarseness)
         bone_ct = masks.occupancy | masks.w_ht | masks.w_h0
-        lumen = ws.ct_f[masks.box] < own.info["label_level_hu"]
+        lumen = ct_box < own.info["label_level_hu"]
         return mask_normals(masks.solid_h0, points, d), _poisson.carve_region(
             trusted, bone_ct, d,
             segment_margin_mm=CARVE_SEGMENT_COARSENESS * ws.prep.coarseness + d,
@@ -805,8 +807,7 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
                              label_origin=np.zeros(3), label_spacing=d,
                              genus=genus,
                              close_mm=(ws.prep.coarseness,), bone=masks.w_ht, carve=carve,
-                             strong=(ws.ct_f[masks.box] >= ws.h0)
-                             & (ws.ct_f[masks.box] <= params.theta_max))
+                             strong=(ct_box >= ws.h0) & (ct_box <= params.theta_max))
     # A thin process of the bone's own (a sacral tip at 3 mm) that Poisson at depth 7
     # detaches as a small component is joined back from the bone the thresholds hold -
     # inside the image: beyond a cap plane the grid only continues the border slice.

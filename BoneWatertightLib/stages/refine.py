@@ -15,6 +15,7 @@ import functools
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.interpolate import RegularGridInterpolator
 
 from ..mesh.operators import (SAMPLE_CHUNK, SAMPLE_THREADS, laplacian, ring_mean, safe_update,
                               sample_field, solve_spd, vertex_normals)
@@ -92,13 +93,8 @@ def slab_edge_level(ratio, fall=1.0):
     known = ~(np.isnan(q) | np.isnan(f))  # no level for a profile without a contrast
     q = np.clip(np.where(known, q, 1.0), q_axis[0], q_axis[-1])
     f = np.clip(np.where(known, f, 0.0), f_axis[0], f_axis[-1])
-    qi = np.interp(q, q_axis, np.arange(len(q_axis)))
-    fi = np.interp(f, f_axis, np.arange(len(f_axis)))
-    q0 = np.minimum(np.floor(qi).astype(int), len(q_axis) - 2)
-    f0 = np.minimum(np.floor(fi).astype(int), len(f_axis) - 2)
-    a, b = qi - q0, fi - f0
-    level = ((1 - a) * (1 - b) * table[q0, f0] + a * (1 - b) * table[q0 + 1, f0]
-             + (1 - a) * b * table[q0, f0 + 1] + a * b * table[q0 + 1, f0 + 1])
+    level = RegularGridInterpolator((q_axis, f_axis), table)(
+        np.stack([q.ravel(), f.ravel()], axis=-1)).reshape(q.shape)
     return np.where(known, np.clip(level, *SLAB_LEVEL_RANGE), np.nan)
 
 
