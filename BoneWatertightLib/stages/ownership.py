@@ -15,8 +15,10 @@ label is a bone: the targets and their neighbours). Axis order (z, y, x) through
    masks are often wrong by a few mm at a joint), in a joint space the CT shows, and in a part
    of the label that such a joint space cuts off from its core and whose bone continues into
    unlabelled bone (:func:`_beyond_a_joint_space`: a coarse label over an unlabelled
-   neighbour's rim); and "other bone": H0 voxels outside every label's region (an unlabelled
-   neighbour), one marker per connected piece.
+   neighbour's rim), nor (outside its core) within ``r_contact`` of unlabelled strong bone that
+   continues into bone outside every region (:func:`_unlabelled_contact`: an unlabelled
+   neighbour's cortex under a label that overlaps it); and "other bone": H0 voxels outside
+   every label's region (an unlabelled neighbour), one marker per connected piece.
 3. **Flooding** (:func:`flood_from_markers`) inside F in the order of the CT's valley-ness
    V = closing(CT) - CT (a black top-hat, quantised): V is high in thin dark gaps between
    bright cortices - joint spaces - and about zero in trabecular bone and soft tissue. So
@@ -789,7 +791,9 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     levels = np.floor(np.clip(valley_map(ct, spacing, radius), 0, None) / quantum).astype(np.int32)
     # A visible joint space: below H0 in a valley of at least SEEN_VALLEY_QUANTA quanta.
     seen = ~strong & (levels >= SEEN_VALLEY_QUANTA)
-    markers, n_pieces, dropped = _markers(fg, strong, labels, seg, other, spacing, seen=seen)
+    markers, n_pieces, dropped, near_unlabelled = _markers(fg, strong, labels, seg, other,
+                                                           spacing, seen=seen,
+                                                           r_contact=r_contact)
     if progress:
         progress(0.6, "flooding from the markers")
     ws = flood_from_markers(markers, levels, fg)
@@ -841,6 +845,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             "joint_space_voxels": int(joint_space.sum()), "joint_cuts": cut_info,
             "joint_fits": fit_info,
             "rim_voxels_unmarked": dropped,
+            "unlabelled_contact_voxels_unmarked": near_unlabelled,
             "unsupported": {int(k): v for k, v in seg.unsupported_info.items()},
             "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
                                    "contact_mm2": round(s, 1), "ml": round(merged_ml[p], 2),
@@ -941,21 +946,28 @@ def _bone_foreground(ct, labelled, cores, *, h0, ht, t_low, theta_max) -> tuple:
 
 
 def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float,
-             seen=None) -> tuple:
+             seen=None, r_contact: float = 0.0) -> tuple:
     """The flooding's markers (uint16): each label's strong bone and core outside the contact
     zones, and the unlabelled pieces of strong bone outside every region (of at least
     MIN_OTHER_PIECE_MM3) numbered from ``other``; returns (markers, number of pieces, voxels
-    of label bone that are no marker: see :func:`_beyond_a_joint_space`).
+    of label bone that are no marker as :func:`_beyond_a_joint_space` found them, and as
+    :func:`_unlabelled_contact` did).
 
     ``seen``: (z, y, x) bool, the voxels of a seen joint space (below H0 in a valley of
-    SEEN_VALLEY_QUANTA or more), or None."""
+    SEEN_VALLEY_QUANTA or more), or None. ``r_contact``: the joint zone's reach (mm); with 0
+    the contact with unlabelled bone is not looked for."""
     mine = fg & strong & (labels > 0) & ~seg.contact
     om = fg & strong & ~seg.union
-    dropped = 0
+    dropped = near_unlabelled = 0
     if seen is not None:
         beyond = _beyond_a_joint_space(fg, strong, labels, seg, om, seen)
         dropped = int(np.count_nonzero(beyond & mine))
         mine &= ~beyond
+    if r_contact > 0:
+        near = _unlabelled_contact(fg, strong, labels > 0, om, spacing, r_contact)
+        near &= seg.cores == 0   # the core stays: the label's bone must keep its markers
+        near_unlabelled = int(np.count_nonzero(near & mine))
+        mine &= ~near
     markers = np.where(mine, labels, 0).astype(np.uint16)
     core_marker = (seg.cores > 0) & ~seg.contact
     if seen is not None:
@@ -974,7 +986,33 @@ def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float,
         remap = np.zeros(no + 1, np.uint32)
         remap[ok] = np.arange(n_pieces) + other
         markers[om] = remap[olab[om]].astype(np.uint16)
-    return markers, n_pieces, dropped
+    return markers, n_pieces, dropped, near_unlabelled
+
+
+def _unlabelled_contact(fg, strong, labelled, om, spacing: float, r_contact: float) -> np.ndarray:
+    """The labels' joint zone with unlabelled bone: labelled voxels within ``r_contact`` of
+    strong bone outside every label that continues, outside every label, into the unlabelled
+    bone outside every region (``om``). (z, y, x) bool.
+
+    Between two labels the joint zone gives no markers because a label may be a few mm wrong at
+    a joint (the flood and the joint cut decide there). A neighbour nobody labelled has no label
+    to mark such a zone, and a label that overlaps it (an AI femur label on a 1.5 mm grid across
+    a 1 mm joint space, over the cup's inner cortex) made the neighbour's cortex the bone's own
+    marker: the flood then gave the bone the neighbour's cortex beyond the joint space the CT
+    shows. Without markers there, the split falls in that joint space (the valleys), or, where
+    the CT shows none, midway between the label's core and the neighbour's bone."""
+    out = np.zeros(labelled.shape, bool)
+    if not om.any() or not labelled.any():
+        return out
+    sl = bbox_slices(labelled, int(np.ceil(r_contact / spacing)) + 2)
+    free, nfree = ndimage.label(fg & strong & ~labelled, structure=SIX)
+    reach = np.zeros(nfree + 1, bool)
+    reach[np.unique(free[om])] = True
+    reach[0] = False
+    unlabelled = reach[free[sl]]
+    if unlabelled.any():
+        out[sl] = labelled[sl] & (distance_outside(unlabelled) * spacing <= r_contact)
+    return out
 
 
 def _beyond_a_joint_space(fg, strong, labels, seg: _LabelParts, om, seen) -> np.ndarray:
