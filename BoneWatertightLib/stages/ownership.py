@@ -790,10 +790,12 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     radius = 0.5 * VALLEY_GAP_MM + spacing
     levels = np.floor(np.clip(valley_map(ct, spacing, radius), 0, None) / quantum).astype(np.int32)
     # A visible joint space: below H0 in a valley of at least SEEN_VALLEY_QUANTA quanta.
-    seen = ~strong & (levels >= SEEN_VALLEY_QUANTA)
+    valley = levels >= SEEN_VALLEY_QUANTA
+    seen = ~strong & valley
     markers, n_pieces, dropped, near_unlabelled = _markers(fg, strong, labels, seg, other,
                                                            spacing, seen=seen,
-                                                           r_contact=r_contact)
+                                                           r_contact=r_contact, valley=valley)
+    del valley
     if progress:
         progress(0.6, "flooding from the markers")
     ws = flood_from_markers(markers, levels, fg)
@@ -946,7 +948,7 @@ def _bone_foreground(ct, labelled, cores, *, h0, ht, t_low, theta_max) -> tuple:
 
 
 def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float,
-             seen=None, r_contact: float = 0.0) -> tuple:
+             seen=None, r_contact: float = 0.0, valley=None) -> tuple:
     """The flooding's markers (uint16): each label's strong bone and core outside the contact
     zones, and the unlabelled pieces of strong bone outside every region (of at least
     MIN_OTHER_PIECE_MM3) numbered from ``other``; returns (markers, number of pieces, voxels
@@ -955,7 +957,8 @@ def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float,
 
     ``seen``: (z, y, x) bool, the voxels of a seen joint space (below H0 in a valley of
     SEEN_VALLEY_QUANTA or more), or None. ``r_contact``: the joint zone's reach (mm); with 0
-    the contact with unlabelled bone is not looked for."""
+    the contact with unlabelled bone is not looked for. ``valley``: (z, y, x) bool, the voxels
+    in a valley of SEEN_VALLEY_QUANTA or more whatever their HU, or None."""
     mine = fg & strong & (labels > 0) & ~seg.contact
     om = fg & strong & ~seg.union
     dropped = near_unlabelled = 0
@@ -963,13 +966,19 @@ def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float,
         beyond = _beyond_a_joint_space(fg, strong, labels, seg, om, seen)
         dropped = int(np.count_nonzero(beyond & mine))
         mine &= ~beyond
+    core_marker = (seg.cores > 0) & ~seg.contact
     if r_contact > 0:
         near = _unlabelled_contact(fg, strong, labels > 0, om, spacing, r_contact)
-        near &= seg.cores == 0   # the core stays: the label's bone must keep its markers
-        near_unlabelled = int(np.count_nonzero(near & mine))
+        # The core stays (the label keeps its markers) but for a joint space there, blurred
+        # above H0 (a 1 mm joint on 0.8 mm pixels).
+        keep = seg.cores > 0
+        if valley is not None:
+            keep &= ~valley
+        near &= ~keep
+        near_unlabelled = int(np.count_nonzero(near & (mine | core_marker)))
         mine &= ~near
+        core_marker &= ~near
     markers = np.where(mine, labels, 0).astype(np.uint16)
-    core_marker = (seg.cores > 0) & ~seg.contact
     if seen is not None:
         # A joint space the CT shows is no marker even deep in a label (the flood decides it;
         # a pore of a trabecular core is claimed at its level by the bone around it).
