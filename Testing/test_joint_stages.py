@@ -240,6 +240,25 @@ def test_a_label_over_an_unlabelled_neighbours_rim_beyond_a_seen_joint_space(hid
         assert own.info["rim_voxels_unmarked"] > 0
 
 
+def test_a_label_over_an_unlabelled_neighbours_cortex_beyond_a_blurred_joint_space():
+    """A label of bone 1 reaches across a joint space into the cortex of an unlabelled
+    neighbour, and the joint space reads above H0 (a 1 mm joint blurred on 0.8 mm pixels: an AI
+    femur label on a 1.5 mm grid over the cup's inner cortex). The neighbour's cortex under the
+    label is no marker of bone 1, nor is the joint space (in bone 1's core), so the split falls
+    in the joint space; the flood gave bone 1 the neighbour's wall and inside before."""
+    ct, labels = _two_blocks(shift_label=0, gap=2)
+    labels[labels == 2] = 0
+    ct[4:20, 4:20, 28:30] = 500.0  # the joint space, above H0: not a "seen" joint space
+    labels[4:20, 4:20, 28:31] = 1  # over the joint space (x 28, 29) and block 2's wall (x 30)
+    own = ownership.compute_ownership(ct, labels, 1, 1.0, h0=400.0, ht=200.0, theta_max=2500.0,
+                                      soft=40.0, contrast=1160.0, coarseness=1.0, band_mm=3.0)
+    row = own.owner[12, 12]
+    assert (row[6:28] == 1).all(), row[24:36]
+    assert (row[30:54] != 1).all(), row[24:36]
+    assert own.info["rim_voxels_unmarked"] == 0
+    assert own.info["unlabelled_contact_voxels_unmarked"] > 0
+
+
 def test_a_plate_piece_cut_off_by_a_hole_keeps_its_markers(monkeypatch):
     """A thin plate of bone 1 that its label covers (with the soft tissue around it) and that
     continues beyond the label into unlabelled plate; a hole across it (dark between bright,
