@@ -240,22 +240,41 @@ def test_a_label_over_an_unlabelled_neighbours_rim_beyond_a_seen_joint_space(hid
         assert own.info["rim_voxels_unmarked"] > 0
 
 
-def test_a_label_over_an_unlabelled_neighbours_cortex_beyond_a_blurred_joint_space():
-    """A label of bone 1 reaches across a joint space into the cortex of an unlabelled
-    neighbour, and the joint space reads above H0 (a 1 mm joint blurred on 0.8 mm pixels: an AI
-    femur label on a 1.5 mm grid over the cup's inner cortex). The neighbour's cortex under the
-    label is no marker of bone 1, nor is the joint space (in bone 1's core), so the split falls
-    in the joint space; the flood gave bone 1 the neighbour's wall and inside before."""
-    ct, labels = _two_blocks(shift_label=0, gap=2)
-    labels[labels == 2] = 0
-    ct[4:20, 4:20, 28:30] = 500.0  # the joint space, above H0: not a "seen" joint space
-    labels[4:20, 4:20, 28:31] = 1  # over the joint space (x 28, 29) and block 2's wall (x 30)
-    own = ownership.compute_ownership(ct, labels, 1, 1.0, h0=400.0, ht=200.0, theta_max=2500.0,
-                                      soft=40.0, contrast=1160.0, coarseness=1.0, band_mm=3.0)
-    row = own.owner[12, 12]
-    assert (row[6:28] == 1).all(), row[24:36]
-    assert (row[30:54] != 1).all(), row[24:36]
-    assert own.info["rim_voxels_unmarked"] == 0
+def test_a_label_over_an_unlabelled_cups_cortex_beyond_a_blurred_joint_space():
+    """A femoral head (cortex 1200, inside 300) in an unlabelled cup (two cortices round a
+    spongy middle, joined at the rim, and the pelvis beyond) across a joint space blurred above
+    H0 (550 HU: no "seen" joint space); the femur's label reaches over the joint space into the
+    cup's inner cortex (an AI label on a 1.5 mm grid over a 1 mm joint). The cup stays a
+    neighbour (the merge leaves it), so the label's voxels near its bone give no markers (in the
+    core, only the joint space's) and the flood runs again: the cup's inner cortex is the cup's.
+    With those markers the femur took all of it."""
+    sp = 0.5
+    shape = (88, 88, 88)
+    z, y, x = np.indices(shape) * sp
+    r = np.sqrt((z - 20.0) ** 2 + (y - 22.0) ** 2 + (x - 22.0) ** 2)
+    ct = np.full(shape, 40.0, np.float32)
+    axis = np.hypot(y - 22.0, x - 22.0)
+    neck = (axis <= 4.5) & (z < 20)
+    ct[neck] = 1200.0
+    ct[neck & (axis <= 3.0)] = 300.0
+    ct[r <= 9] = 1200.0
+    ct[r <= 7.5] = 300.0
+    cup = z >= 17
+    ct[cup & (r > 9) & (r <= 10.5)] = 550.0  # the joint space
+    ct[cup & (r > 10.5) & (r <= 12)] = 1200.0  # the cup's inner cortex
+    ct[cup & (r > 12) & (r <= 13.5)] = 300.0
+    ct[cup & (r > 13.5) & (r <= 15)] = 1200.0
+    ct[cup & (r > 15) & (r <= 19) & (z >= 30)] = 1200.0  # the pelvis beyond
+    ct[(z >= 17) & (z <= 18) & (r > 10.5) & (r <= 15)] = 1200.0  # the rim
+    labels = np.zeros(shape, np.uint16)
+    labels[(r <= 11.3) | (neck & (axis <= 5.0))] = 1
+    own = ownership.compute_ownership(ct, labels, 1, sp, h0=400.0, ht=200.0, theta_max=2500.0,
+                                      soft=40.0, contrast=1160.0, coarseness=1.5, band_mm=3.0)
+    inner = cup & (r > 10.5) & (r <= 12) & (ct > 1000)
+    head = (r <= 9) & (ct > 1000)
+    assert not own.info["merged_unlabelled"]
+    assert np.mean(own.owner[inner] == 1) < 0.02
+    assert (own.owner[head] == 1).all()
     assert own.info["unlabelled_contact_voxels_unmarked"] > 0
 
 

@@ -15,10 +15,8 @@ label is a bone: the targets and their neighbours). Axis order (z, y, x) through
    masks are often wrong by a few mm at a joint), in a joint space the CT shows, and in a part
    of the label that such a joint space cuts off from its core and whose bone continues into
    unlabelled bone (:func:`_beyond_a_joint_space`: a coarse label over an unlabelled
-   neighbour's rim), nor (outside its core) within ``r_contact`` of unlabelled strong bone that
-   continues into bone outside every region (:func:`_unlabelled_contact`: an unlabelled
-   neighbour's cortex under a label that overlaps it); and "other bone": H0 voxels outside
-   every label's region (an unlabelled neighbour), one marker per connected piece.
+   neighbour's rim); and "other bone": H0 voxels outside every label's region (an unlabelled
+   neighbour), one marker per connected piece.
 3. **Flooding** (:func:`flood_from_markers`) inside F in the order of the CT's valley-ness
    V = closing(CT) - CT (a black top-hat, quantised): V is high in thin dark gaps between
    bright cortices - joint spaces - and about zero in trabecular bone and soft tissue. So
@@ -38,6 +36,11 @@ label is a bone: the targets and their neighbours). Axis order (z, y, x) through
    piece that continues into unlabelled bone not merged, or whose contact shows part of a
    joint space, is a neighbour's fragment fused with k (the plausibility gate counts it); one
    that touches only k and other merged pieces without a valley is k's.
+4b. Where a piece stays a neighbour, the label's voxels (outside its core, and in a valley
+   even in it) within ``r_contact`` of the neighbour's strong bone outside every label are its
+   joint zone with that unlabelled neighbour, as with a labelled one: they give no markers and
+   steps 3-4 run again (:func:`_unlabelled_contact`: a label over an unlabelled neighbour's
+   cortex beyond a joint space blurred above H0).
 5. Bone k owns its basin's part within its region (segment closed + dilated by the band, see
    :func:`threshold.segment_region`) connected to its markers.
 """
@@ -788,40 +791,63 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     other = n + 1
     quantum = max(VALLEY_QUANTUM_MIN_HU, VALLEY_QUANTUM_FRACTION * contrast)
     radius = 0.5 * VALLEY_GAP_MM + spacing
-    levels = np.floor(np.clip(valley_map(ct, spacing, radius), 0, None) / quantum).astype(np.int32)
+    # (uint8: the flood's order only; a valley of 255 quanta is deeper than any CT's)
+    levels = np.minimum(np.floor(np.clip(valley_map(ct, spacing, radius), 0, None) / quantum),
+                        255).astype(np.uint8)
     # A visible joint space: below H0 in a valley of at least SEEN_VALLEY_QUANTA quanta.
-    valley = levels >= SEEN_VALLEY_QUANTA
-    seen = ~strong & valley
-    markers, n_pieces, dropped, near_unlabelled = _markers(fg, strong, labels, seg, other,
-                                                           spacing, seen=seen,
-                                                           r_contact=r_contact, valley=valley)
-    del valley
-    if progress:
-        progress(0.6, "flooding from the markers")
-    ws = flood_from_markers(markers, levels, fg)
-    cut_info = cut_joint_zones(ws, fg, labels, ct, n, spacing, r_contact, quantum=quantum,
-                               radius_mm=radius)
-    fit_info = carry_joint_fits(ws, fg, ct, seg.cores, seg.regions, n, spacing,
+    seen = ~strong & (levels >= SEEN_VALLEY_QUANTA)
+    markers, n_pieces, dropped = _markers(fg, strong, labels, seg, other, spacing, seen=seen)
+    pieces = range(other, other + n_pieces)
+    reach_mm = band_mm + MERGE_REACH_COARSENESS * coarseness + MERGE_REACH_MM
+
+    def split():
+        # Steps 3-4 (the joint fits grow the regions and drop moved cores: on seg, in place).
+        if progress:
+            progress(0.6, "flooding from the markers")
+        ws = flood_from_markers(markers, levels, fg)
+        cut = cut_joint_zones(ws, fg, labels, ct, n, spacing, r_contact, quantum=quantum,
+                              radius_mm=radius)
+        fits = carry_joint_fits(ws, fg, ct, seg.cores, seg.regions, n, spacing,
                                 quantum=quantum, radius_mm=radius, reach_mm=r_contact + band_mm,
                                 margin_mm=r_contact, resolution_mm=ct_resolution)
+        if progress:
+            progress(0.8, "contacts between bones")
+        faces = _interfaces(ws, fg, ct, spacing, quantum, radius)
+        boxes = ndimage.find_objects(ws)
+        sets = {"beyond": set(), "sided": set(), "plates": set()}
+        merged = _merged_pieces(faces, ws, labels, n, pieces, spacing, reach_mm=reach_mm,
+                                boxes=boxes, beyond=sets["beyond"], sided=sets["sided"])
+        merged += _enclosed_pieces(faces, merged, pieces, n, ws, labels, spacing,
+                                   reach_mm=reach_mm, boxes=boxes,
+                                   plate_depth_mm=max(coarseness, spacing), plates=sets["plates"])
+        return ws, cut, fits, faces, boxes, merged, sets
+
+    first = (seg.cores.copy(), dict(seg.regions)) if n_pieces else None
+    ws, cut_info, fit_info, faces, boxes, merged, sets = split()
+    near_unlabelled = 0
+    if n_pieces:
+        neighbours = set(pieces) - {p for p, _, _, _ in merged}
+        near = _unlabelled_contact(markers, neighbours, fg & strong, labels > 0, spacing,
+                                   r_contact)
+        if near is not None:
+            cores0, regions0 = first
+            # The core keeps its markers but for a valley (a joint space blurred above H0).
+            near &= (markers > 0) & (markers <= n) & ((cores0 == 0) | (levels >= SEEN_VALLEY_QUANTA))
+            near_unlabelled = int(np.count_nonzero(near))
+        if near_unlabelled:
+            markers[near] = 0
+            seg.cores[...] = cores0
+            seg.regions = regions0
+            del ws, faces, boxes
+            ws, cut_info, fit_info, faces, boxes, merged, sets = split()
+        del near
+    del first
+    beyond, sided, plates = sets["beyond"], sets["sided"], sets["plates"]
     # A visible joint space (cartilage between two cortices, below H0, in a valley of at least
-    # SEEN_VALLEY_QUANTA quanta) is no bone: it joins no bone's W_HT (removed below, after the
+    # SEEN_VALLEY_QUANTA quanta) is no bone: it joins no bone's W_HT (removed here, after the
     # contacts between the basins are measured).
     joint_space = fg & seen & (seg.cores == 0)
     del levels, seen
-    if progress:
-        progress(0.8, "contacts between bones")
-    faces = _interfaces(ws, fg, ct, spacing, quantum, radius)
-    boxes = ndimage.find_objects(ws)
-    reach_mm = band_mm + MERGE_REACH_COARSENESS * coarseness + MERGE_REACH_MM
-    beyond: set = set()
-    sided: set = set()
-    merged = _merged_pieces(faces, ws, labels, n, range(other, other + n_pieces), spacing,
-                            reach_mm=reach_mm, boxes=boxes, beyond=beyond, sided=sided)
-    plates: set = set()
-    merged += _enclosed_pieces(faces, merged, range(other, other + n_pieces), n, ws, labels,
-                               spacing, reach_mm=reach_mm, boxes=boxes,
-                               plate_depth_mm=max(coarseness, spacing), plates=plates)
     ws[joint_space] = 0
     owner = _owners(ws, seg.regions, markers, labels, merged, boxes)
     merged_ids = {p for p, _, _, _ in merged}
@@ -948,37 +974,23 @@ def _bone_foreground(ct, labelled, cores, *, h0, ht, t_low, theta_max) -> tuple:
 
 
 def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float,
-             seen=None, r_contact: float = 0.0, valley=None) -> tuple:
+             seen=None) -> tuple:
     """The flooding's markers (uint16): each label's strong bone and core outside the contact
     zones, and the unlabelled pieces of strong bone outside every region (of at least
     MIN_OTHER_PIECE_MM3) numbered from ``other``; returns (markers, number of pieces, voxels
-    of label bone that are no marker as :func:`_beyond_a_joint_space` found them, and as
-    :func:`_unlabelled_contact` did).
+    of label bone that are no marker: see :func:`_beyond_a_joint_space`).
 
     ``seen``: (z, y, x) bool, the voxels of a seen joint space (below H0 in a valley of
-    SEEN_VALLEY_QUANTA or more), or None. ``r_contact``: the joint zone's reach (mm); with 0
-    the contact with unlabelled bone is not looked for. ``valley``: (z, y, x) bool, the voxels
-    in a valley of SEEN_VALLEY_QUANTA or more whatever their HU, or None."""
+    SEEN_VALLEY_QUANTA or more), or None."""
     mine = fg & strong & (labels > 0) & ~seg.contact
     om = fg & strong & ~seg.union
-    dropped = near_unlabelled = 0
+    dropped = 0
     if seen is not None:
         beyond = _beyond_a_joint_space(fg, strong, labels, seg, om, seen)
         dropped = int(np.count_nonzero(beyond & mine))
         mine &= ~beyond
-    core_marker = (seg.cores > 0) & ~seg.contact
-    if r_contact > 0:
-        near = _unlabelled_contact(fg, strong, labels > 0, om, spacing, r_contact)
-        # The core stays (the label keeps its markers) but for a joint space there, blurred
-        # above H0 (a 1 mm joint on 0.8 mm pixels).
-        keep = seg.cores > 0
-        if valley is not None:
-            keep &= ~valley
-        near &= ~keep
-        near_unlabelled = int(np.count_nonzero(near & (mine | core_marker)))
-        mine &= ~near
-        core_marker &= ~near
     markers = np.where(mine, labels, 0).astype(np.uint16)
+    core_marker = (seg.cores > 0) & ~seg.contact
     if seen is not None:
         # A joint space the CT shows is no marker even deep in a label (the flood decides it;
         # a pore of a trabecular core is claimed at its level by the bone around it).
@@ -995,32 +1007,37 @@ def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float,
         remap = np.zeros(no + 1, np.uint32)
         remap[ok] = np.arange(n_pieces) + other
         markers[om] = remap[olab[om]].astype(np.uint16)
-    return markers, n_pieces, dropped, near_unlabelled
+    return markers, n_pieces, dropped
 
 
-def _unlabelled_contact(fg, strong, labelled, om, spacing: float, r_contact: float) -> np.ndarray:
-    """The labels' joint zone with unlabelled bone: labelled voxels within ``r_contact`` of
-    strong bone outside every label that continues, outside every label, into the unlabelled
-    bone outside every region (``om``). (z, y, x) bool.
+def _unlabelled_contact(markers, neighbours: set, bone, labelled, spacing: float,
+                        r_contact: float):
+    """The labels' joint zone with unlabelled neighbours: labelled voxels within ``r_contact``
+    of strong bone outside every label that continues, outside every label, to the markers of
+    ``neighbours`` (the unlabelled pieces the merge left as neighbours). ``bone``: the strong
+    bone evidence. (z, y, x) bool, or None when there is none.
 
     Between two labels the joint zone gives no markers because a label may be a few mm wrong at
     a joint (the flood and the joint cut decide there). A neighbour nobody labelled has no label
     to mark such a zone, and a label that overlaps it (an AI femur label on a 1.5 mm grid across
     a 1 mm joint space, over the cup's inner cortex) made the neighbour's cortex the bone's own
-    marker: the flood then gave the bone the neighbour's cortex beyond the joint space the CT
-    shows. Without markers there, the split falls in that joint space (the valleys), or, where
-    the CT shows none, midway between the label's core and the neighbour's bone."""
-    out = np.zeros(labelled.shape, bool)
-    if not om.any() or not labelled.any():
-        return out
-    sl = bbox_slices(labelled, int(np.ceil(r_contact / spacing)) + 2)
-    free, nfree = ndimage.label(fg & strong & ~labelled, structure=SIX)
+    marker: the flood gave the bone the neighbour's cortex beyond the joint space the CT shows.
+    Unlabelled bone that the merge takes in (the bone's own end that a rough label misses) is
+    no neighbour: near it the label keeps its markers."""
+    if not neighbours or not labelled.any():
+        return None
+    free, nfree = ndimage.label(bone & ~labelled, structure=SIX)
+    is_nb = np.zeros(int(markers.max()) + 1, bool)
+    is_nb[list(neighbours)] = True
     reach = np.zeros(nfree + 1, bool)
-    reach[np.unique(free[om])] = True
+    reach[np.unique(free[is_nb[markers]])] = True
     reach[0] = False
-    unlabelled = reach[free[sl]]
-    if unlabelled.any():
-        out[sl] = labelled[sl] & (distance_outside(unlabelled) * spacing <= r_contact)
+    sl = bbox_slices(labelled, int(np.ceil(r_contact / spacing)) + 2)
+    theirs = reach[free[sl]]
+    if not theirs.any():
+        return None
+    out = np.zeros(labelled.shape, bool)
+    out[sl] = labelled[sl] & (distance_outside(theirs) * spacing <= r_contact)
     return out
 
 
