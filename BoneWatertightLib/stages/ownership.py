@@ -826,9 +826,9 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     ws, cut_info, fit_info, faces, boxes, merged, sets = split()
     near_unlabelled = 0
     if n_pieces:
-        neighbours = set(pieces) - {p for p, _, _, _ in merged}
-        near = _unlabelled_contact(markers, neighbours, fg & strong, labels > 0, spacing,
-                                   r_contact)
+        taken = {p for p, _, _, _ in merged}
+        near = _unlabelled_contact(markers, set(pieces) - taken, taken, fg & strong,
+                                   labels > 0, spacing, r_contact)
         if near is not None:
             cores0, regions0 = first
             # The core keeps its markers but for a valley (a joint space blurred above H0).
@@ -1010,12 +1010,13 @@ def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float,
     return markers, n_pieces, dropped
 
 
-def _unlabelled_contact(markers, neighbours: set, bone, labelled, spacing: float,
+def _unlabelled_contact(markers, neighbours: set, taken: set, bone, labelled, spacing: float,
                         r_contact: float):
     """The labels' joint zone with unlabelled neighbours: labelled voxels within ``r_contact``
     of strong bone outside every label that continues, outside every label, to the markers of
-    ``neighbours`` (the unlabelled pieces the merge left as neighbours). ``bone``: the strong
-    bone evidence. (z, y, x) bool, or None when there is none.
+    ``neighbours`` (the unlabelled pieces the merge left as neighbours) and to none of ``taken``
+    (the pieces it took in). ``bone``: the strong bone evidence. (z, y, x) bool, or None when
+    there is none.
 
     Between two labels the joint zone gives no markers because a label may be a few mm wrong at
     a joint (the flood and the joint cut decide there). A neighbour nobody labelled has no label
@@ -1023,14 +1024,19 @@ def _unlabelled_contact(markers, neighbours: set, bone, labelled, spacing: float
     a 1 mm joint space, over the cup's inner cortex) made the neighbour's cortex the bone's own
     marker: the flood gave the bone the neighbour's cortex beyond the joint space the CT shows.
     Unlabelled bone that the merge takes in (the bone's own end that a rough label misses) is
-    no neighbour: near it the label keeps its markers."""
+    no neighbour, and where it continues into a neighbour's bone without a label between them
+    (a joint that thick slices hide) the zone is not known: near both the label keeps its
+    markers."""
     if not neighbours or not labelled.any():
         return None
     free, nfree = ndimage.label(bone & ~labelled, structure=SIX)
-    is_nb = np.zeros(int(markers.max()) + 1, bool)
-    is_nb[list(neighbours)] = True
+    kind = np.zeros(int(markers.max()) + 1, np.uint8)
+    kind[list(neighbours)] = 1
+    kind[list(taken)] = 2
+    of = kind[markers]
     reach = np.zeros(nfree + 1, bool)
-    reach[np.unique(free[is_nb[markers]])] = True
+    reach[np.unique(free[of == 1])] = True
+    reach[np.unique(free[of == 2])] = False
     reach[0] = False
     sl = bbox_slices(labelled, int(np.ceil(r_contact / spacing)) + 2)
     theirs = reach[free[sl]]
