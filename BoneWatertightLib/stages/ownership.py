@@ -832,7 +832,8 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         if near is not None:
             cores0, regions0 = first
             # The core keeps its markers but for a valley (a joint space blurred above H0).
-            near &= (markers > 0) & (markers <= n) & ((cores0 == 0) | (levels >= SEEN_VALLEY_QUANTA))
+            near &= (markers > 0) & (markers <= n)
+            near &= (cores0 == 0) | (levels >= SEEN_VALLEY_QUANTA)
             near_unlabelled = int(np.count_nonzero(near))
         if near_unlabelled:
             markers[near] = 0
