@@ -36,10 +36,11 @@ label is a bone: the targets and their neighbours). Axis order (z, y, x) through
    piece that continues into unlabelled bone not merged, or whose contact shows part of a
    joint space, is a neighbour's fragment fused with k (the plausibility gate counts it); one
    that touches only k and other merged pieces without a valley is k's.
-4b. Where a piece stays a neighbour, the label's voxels (outside its core, and in a valley
-   even in it) within ``r_contact`` of the neighbour's strong bone outside every label are its
-   joint zone with that unlabelled neighbour, as with a labelled one: they give no markers and
-   steps 3-4 run again (:func:`_unlabelled_contact`: a label over an unlabelled neighbour's
+4b. Where a piece stays a neighbour across a joint space (a valley on at least
+   MERGE_MAX_VALLEY_FRACTION of its contact with a label), the label's voxels (outside its
+   core, and in a valley even in it) within ``r_contact`` of the neighbour's strong bone
+   outside every label are its joint zone with that unlabelled neighbour, as with a labelled
+   one: they give no markers and steps 3-4 run again (:func:`_unlabelled_contact`: a label over an unlabelled neighbour's
    cortex beyond a joint space blurred above H0).
 5. Bone k owns its basin's part within its region (segment closed + dilated by the band, see
    :func:`threshold.segment_region`) connected to its markers.
@@ -827,8 +828,13 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     near_unlabelled = 0
     if n_pieces:
         taken = {p for p, _, _, _ in merged}
-        near = _unlabelled_contact(markers, set(pieces) - taken, taken, fg & strong,
-                                   labels > 0, spacing, r_contact)
+        # A neighbour across a joint space: a valley on at least MERGE_MAX_VALLEY_FRACTION of
+        # its contact with a label (without one the label is all there is to go by: an AI
+        # label that stops short along a bone the CT shows whole, the slab's humerus).
+        across = {y for (x, y), (tot, vis) in faces.items()
+                  if x <= n < y and y not in taken and vis >= MERGE_MAX_VALLEY_FRACTION * tot}
+        near = _unlabelled_contact(markers, across, taken, fg & strong, labels > 0, spacing,
+                                   r_contact)
         if near is not None:
             cores0, regions0 = first
             # The core keeps its markers but for a valley (a joint space blurred above H0).
@@ -1015,7 +1021,7 @@ def _unlabelled_contact(markers, neighbours: set, taken: set, bone, labelled, sp
                         r_contact: float):
     """The labels' joint zone with unlabelled neighbours: labelled voxels within ``r_contact``
     of strong bone outside every label that continues, outside every label, to the markers of
-    ``neighbours`` (the unlabelled pieces the merge left as neighbours) and to none of ``taken``
+    ``neighbours`` (unlabelled pieces the merge left as neighbours) and to none of ``taken``
     (the pieces it took in). ``bone``: the strong bone evidence. (z, y, x) bool, or None when
     there is none.
 
