@@ -834,7 +834,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         across = {y for (x, y), (tot, vis) in faces.items()
                   if x <= n < y and y not in taken and vis >= MERGE_MAX_VALLEY_FRACTION * tot}
         near = _unlabelled_contact(markers, across, taken, fg & strong, labels > 0, spacing,
-                                   r_contact)
+                                   r_contact, ws=ws, n=n)
         if near is not None:
             cores0, regions0 = first
             # The core keeps its markers but for a valley (a joint space blurred above H0).
@@ -1018,12 +1018,14 @@ def _markers(fg, strong, labels, seg: _LabelParts, other: int, spacing: float,
 
 
 def _unlabelled_contact(markers, neighbours: set, taken: set, bone, labelled, spacing: float,
-                        r_contact: float):
+                        r_contact: float, ws=None, n: int = 0):
     """The labels' joint zone with unlabelled neighbours: labelled voxels within ``r_contact``
     of strong bone outside every label that continues, outside every label, to the markers of
     ``neighbours`` (unlabelled pieces the merge left as neighbours) and to none of ``taken``
     (the pieces it took in). ``bone``: the strong bone evidence. (z, y, x) bool, or None when
-    there is none.
+    there is none - or, given the first flood's basins ``ws`` (labels 1..n), when no label's
+    basin holds any of that bone (the flood took nothing of the neighbour: a second one would
+    give the same split, at the cost of a second flood).
 
     Between two labels the joint zone gives no markers because a label may be a few mm wrong at
     a joint (the flood and the joint cut decide there). A neighbour nobody labelled has no label
@@ -1049,6 +1051,10 @@ def _unlabelled_contact(markers, neighbours: set, taken: set, bone, labelled, sp
     theirs = reach[free[sl]]
     if not theirs.any():
         return None
+    if ws is not None:
+        held = ws[sl][theirs]
+        if not ((held > 0) & (held <= n)).any():
+            return None
     out = np.zeros(labelled.shape, bool)
     out[sl] = labelled[sl] & (distance_outside(theirs) * spacing <= r_contact)
     return out
