@@ -40,7 +40,8 @@ label is a bone: the targets and their neighbours). Axis order (z, y, x) through
    MERGE_MAX_VALLEY_FRACTION of its contact with a label), the label's voxels (outside its
    core, and in a valley even in it) within ``r_contact`` of the neighbour's strong bone
    outside every label are its joint zone with that unlabelled neighbour, as with a labelled
-   one: they give no markers and steps 3-4 run again (:func:`_unlabelled_contact`: a label over an unlabelled neighbour's
+   one: when the flood gave a label some of the neighbour's bone, they give no markers and
+   steps 3-4 run again (:func:`_unlabelled_contact`: a label over an unlabelled neighbour's
    cortex beyond a joint space blurred above H0).
 5. Bone k owns its basin's part within its region (segment closed + dilated by the band, see
    :func:`threshold.segment_region`) connected to its markers.
@@ -1024,8 +1025,8 @@ def _unlabelled_contact(markers, neighbours: set, taken: set, bone, labelled, sp
     ``neighbours`` (unlabelled pieces the merge left as neighbours) and to none of ``taken``
     (the pieces it took in). ``bone``: the strong bone evidence. (z, y, x) bool, or None when
     there is none - or, given the first flood's basins ``ws`` (labels 1..n), when no label's
-    basin holds any of that bone (the flood took nothing of the neighbour: a second one would
-    give the same split, at the cost of a second flood).
+    basin holds any of that bone (what the zone is there to prevent did not happen, and a second
+    flood costs as much as the first).
 
     Between two labels the joint zone gives no markers because a label may be a few mm wrong at
     a joint (the flood and the joint cut decide there). A neighbour nobody labelled has no label
