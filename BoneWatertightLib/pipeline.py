@@ -1362,7 +1362,10 @@ def bone_report(run: _Run, ws: Workspace, bone: BoneWork, checks, phys, faces, d
         volume_mm3=enclosed_volume(phys, faces), constants=pipeline_constants(),
         label=ws.value_of(bone.k), name=bone.name, thresholds=dict(ws.thresholds),
         ownership={"core_depth_mm": own.info["core_depth_mm"].get(bone.k),
-                   "owned_voxels": int((own.owner == bone.k).sum())},
+                   "owned_voxels": int((own.owner == bone.k).sum()),
+                   # its joint zone with unlabelled neighbours (a second flood ran without them)
+                   "unlabelled_contact_voxels_unmarked": int(own.info.get(
+                       "unlabelled_contact_unmarked_by_label", {}).get(bone.k, 0))},
         separation={"erosions_to_separate": sep,
                     "by": ("threshold" if sep == 0 else f"erosion ({sep} CT voxels)" if sep
                            else "competition at the CT's valley and the labels")},

@@ -276,6 +276,8 @@ def test_a_label_over_an_unlabelled_cups_cortex_beyond_a_blurred_joint_space():
     assert np.mean(own.owner[inner] == 1) < 0.02
     assert (own.owner[head] == 1).all()
     assert own.info["unlabelled_contact_voxels_unmarked"] > 0
+    assert own.info["unlabelled_contact_unmarked_by_label"] == {
+        1: own.info["unlabelled_contact_voxels_unmarked"]}
 
 
 def test_a_plate_piece_cut_off_by_a_hole_keeps_its_markers(monkeypatch):

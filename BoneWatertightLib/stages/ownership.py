@@ -827,6 +827,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     first = (seg.cores.copy(), dict(seg.regions)) if n_pieces else None
     ws, cut_info, fit_info, faces, boxes, merged, sets = split()
     near_unlabelled = 0
+    unmarked_by_label: dict = {}
     if n_pieces:
         taken = {p for p, _, _, _ in merged}
         # A neighbour across a joint space: a valley on at least MERGE_MAX_VALLEY_FRACTION of
@@ -843,6 +844,8 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             near &= (cores0 == 0) | (levels >= SEEN_VALLEY_QUANTA)
             near_unlabelled = int(np.count_nonzero(near))
         if near_unlabelled:
+            per_label = np.bincount(markers[near], minlength=n + 1)
+            unmarked_by_label = {int(k): int(per_label[k]) for k in np.flatnonzero(per_label)}
             markers[near] = 0
             seg.cores[...] = cores0
             seg.regions = regions0
@@ -882,6 +885,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             "joint_fits": fit_info,
             "rim_voxels_unmarked": dropped,
             "unlabelled_contact_voxels_unmarked": near_unlabelled,
+            "unlabelled_contact_unmarked_by_label": unmarked_by_label,
             "unsupported": {int(k): v for k, v in seg.unsupported_info.items()},
             "merged_unlabelled": [{"piece": int(p), "into": int(a), "valley_fraction": round(f, 3),
                                    "contact_mm2": round(s, 1), "ml": round(merged_ml[p], 2),
