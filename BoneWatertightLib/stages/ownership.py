@@ -588,12 +588,17 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         in_b = f & (w == b)
         if not (in_a.any() and in_b.any()):
             continue
-        da = distance_outside(in_a) * spacing
-        db = distance_outside(in_b) * spacing
         seen = gap_valley(ct[sl], spacing, radius_mm) >= SEEN_VALLEY_QUANTA * quantum
+        if np.count_nonzero(seen) < FIT_MIN_POINTS:
+            continue  # the mid-surface below is part of it: too few points for a fit
         # the seen joint space's mid-surface: in a valley, midway between the two bones
-        mid = seen & (np.abs(da - db) <= spacing) & (da <= radius_mm + spacing) \
-            & (db <= radius_mm + spacing)
+        within = radius_mm + spacing
+        da = _distance_near(in_a, seen, within, spacing)
+        db = _distance_near(in_b, seen, within, spacing)
+        mid = seen & (da <= within) & (db <= within)
+        mid[mid] = np.abs(da[mid] - db[mid]) <= spacing
+        if np.count_nonzero(mid) < FIT_MIN_POINTS:
+            continue
         offset = np.array([x.start for x in sl], float)
         # A joint is one patch of seen joint space: seen parts nearer each other than twice
         # the margin the fit is carried beyond its points are one joint (the ring round a
@@ -601,8 +606,8 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         # and the two facet joints of two vertebrae). Only the largest is fitted: one plane
         # through a disc and its facets gave one vertebra's articular process to the other,
         # and a facet's own sphere, carried over its contact, cut the process beyond it.
-        patches, n_patches = ndimage.label(distance_outside(mid) * spacing <= margin_mm,
-                                           structure=np.ones((3, 3, 3), bool))
+        patches, n_patches = ndimage.label(_distance_near(mid, mid, margin_mm, spacing)
+                                           <= margin_mm, structure=np.ones((3, 3, 3), bool))
         part = mid
         if n_patches > 1:
             sizes = np.bincount(patches[mid], minlength=n_patches + 1)
@@ -626,7 +631,7 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
                "to_a": 0, "to_b": 0, "used": False}
         out.append(rec)
         # Orient the fit by the bones beside the seen joint space; it must separate them there.
-        near = distance_outside(part) * spacing <= radius_mm
+        near = _distance_near(part, part, radius_mm, spacing) <= radius_mm
         pa = (np.argwhere(in_a & near) + offset) * spacing
         pb = (np.argwhere(in_b & near) + offset) * spacing
         if len(pa) < 10 or len(pb) < 10:
@@ -650,7 +655,10 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
             # A ball joint whose seen part spans a good part of the ball: its surface continues
             # over the whole contact, and the fit holds within reach of where the two bones
             # touch or the joint space is seen.
-            touching = (in_a & (db <= spacing)) | (in_b & (da <= spacing)) | part
+            # (the bones' distances over the whole box: those above are exact near the seen
+            # joint space only)
+            touching = (in_a & (distance_outside(in_b) * spacing <= spacing)) \
+                | (in_b & (distance_outside(in_a) * spacing <= spacing)) | part
             ok &= (distance_outside(touching) * spacing)[tuple(idx.T)] <= reach_mm
         else:
             # A plane, or a sphere seen on a small patch (its curvature poorly known), holds
@@ -691,6 +699,24 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
             rec[key] = int(flip.sum())
     return out
 
+
+
+def _distance_near(mask: np.ndarray, where: np.ndarray, reach_mm: float,
+                   spacing: float) -> np.ndarray:
+    """Distance (mm, float32) of each voxel to the nearest True voxel of ``mask``, measured
+    on the box of ``where`` grown by ``reach_mm``: exact at the voxels of ``where`` whose
+    distance is at most ``reach_mm`` (at every voxel within ``reach_mm`` of ``mask`` when
+    ``where`` is ``mask``), larger (or inf) elsewhere - the values of
+    ``distance_outside(mask) * spacing`` wherever a caller compares them with ``reach_mm``,
+    without a transform of the whole volume. (z, y, x) arrays."""
+    out = np.full(mask.shape, np.inf, np.float32)
+    if not where.any():
+        return out
+    box = bbox_slices(where, int(np.ceil(reach_mm / spacing)) + 1)
+    part = mask[box]
+    if part.any():
+        out[box] = distance_outside(part) * spacing
+    return out
 
 
 def _no_fit(a: int, b: int, points: int, reason: str) -> dict:
