@@ -322,3 +322,33 @@ def test_unsupported_parts_on_slabs_and_shifted_slices_equal_the_plain_filters(m
                                               smooth_mm=1.0)
     assert len(pieces) == 1 and bad[16, 27, 15] and not bad[20, 15, 15]
 
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_distance_near_is_the_whole_transform_where_it_is_compared_with_its_reach(seed):
+    """The joint fits' distances on the box of ``where`` grown by the reach: at the voxels of
+    ``where`` within the reach they are the whole volume's transform, and compared with the
+    reach they decide as it does; with ``where`` = ``mask``, at every voxel."""
+    from BoneWatertightLib.stages.ownership import _distance_near
+
+    rng = np.random.default_rng(seed)
+    shape = (40, 50, 45)
+    mask = ndimage.binary_dilation(rng.random(shape) > 0.9995, iterations=2)
+    where = np.zeros(shape, bool)
+    where[10:25, 5:30, 20:44] = rng.random((15, 25, 24)) > 0.7
+    spacing, reach = 0.6, 2.5
+    full = distance_outside(mask) * spacing
+    near = _distance_near(mask, where, reach, spacing)
+    close = where & (full <= reach)
+    assert close.any() and (where & (full > reach)).any()
+    np.testing.assert_array_equal(near[close], full[close])
+    np.testing.assert_array_equal(near[where] <= reach, full[where] <= reach)
+    assert np.isinf(near).any()  # it did not measure the whole volume
+    own = _distance_near(mask, mask, reach, spacing)
+    np.testing.assert_array_equal(own <= reach, full <= reach)
+    np.testing.assert_array_equal(own[own <= reach], full[full <= reach])
+    # nothing of the mask near where: infinitely far, as the whole transform says beyond reach
+    far = np.zeros(shape, bool)
+    far[0, 0, 0] = True
+    empty = np.zeros(shape, bool)
+    assert np.isinf(_distance_near(empty, far, reach, spacing)).all()
