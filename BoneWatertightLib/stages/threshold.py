@@ -221,40 +221,7 @@ def _open_close(mask: np.ndarray, opening: int, closing: int, fallbacks=None,
         if not opened.any() and fallbacks is not None:
             fallbacks.add("threshold", f"opening ({opening}) would empty the mask: it is kept "
                           "unopened", int(out.sum()), "voxels", where)
-        out = keep_topology(opened, out) if opened.any() else out
-    return out
-
-
-def keep_topology(opened: np.ndarray, before: np.ndarray) -> np.ndarray:
-    """``opened`` with the pieces an opening took from ``before`` put back where taking them
-    changed the mask's topology.
-
-    The paper's opening removes spurs; on a grid about as coarse as a wall is thick it also
-    removes the wall (two voxels across do not survive one erosion): a hole through a plate
-    the CT shows whole, or a neck cut through. A removed piece (26-connected) that touches the
-    opened mask and whose removal changed its Euler characteristic - counted with 6- and with
-    26-connected voxels, on a window around the piece (the characteristic is additive) - was
-    such a wall or neck, and is put back; a spur's removal changes neither. (z, y, x) bool
-    arrays of one shape."""
-    from .poisson import euler_number
-
-    removed = before & ~opened
-    pieces, n = ndimage.label(removed, structure=np.ones((3, 3, 3), bool))
-    if not n:
-        return opened
-    cube = np.ones((3, 3, 3), bool)
-    out = opened.copy()
-    for i, box in enumerate(ndimage.find_objects(pieces), start=1):
-        if box is None:
-            continue
-        win = tuple(slice(max(0, b.start - 2), min(s, b.stop + 2))
-                    for b, s in zip(box, opened.shape))
-        piece = pieces[win] == i
-        was = opened[win]
-        if not (ndimage.binary_dilation(piece, structure=cube) & was).any():
-            continue  # an island of its own: noise the opening removes
-        if any(euler_number(was | piece, c) != euler_number(was, c) for c in (6, 26)):
-            out[win] |= piece
+        out = opened if opened.any() else out
     return out
 
 
