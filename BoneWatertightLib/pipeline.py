@@ -79,6 +79,10 @@ BAND_COARSENESS = 1.0
 # x coarseness + d from the (trusted) segment and farther than CARVE_BONE_MM + d from the bone
 # at HT (the segment's own uncertainty and the CT's partial-volume foot stay untouched).
 CARVE_SEGMENT_COARSENESS = 0.5
+# Bone that M0 left out (joining it added a tunnel) is warned about when it lies farther than
+# this outside the finished surface: the thin-plate bones' bound on the largest error (issue 18:
+# max <= 5 mm to the reference); nearer, the deformation and the refinement hold it.
+LEFT_OUT_WARN_MM = 5.0
 CARVE_BONE_MM = 1.0
 # ... and wherever the CT shows soft tissue (below the ownership's label level, its
 # info["label_level_hu"]) outside the segment, whatever the segment's and the bone's distance:
@@ -725,6 +729,41 @@ def thin_plates(run: _Run, ws: Workspace, bone: BoneWork) -> None:
         masks.info["voxels_plate"] = int(slab.sum())
 
 
+def _lps_text(grid, point_grid_mm: np.ndarray) -> str:
+    """'LPS (x, y, z)' of a point of the working grid (x, y, z mm), for a message."""
+    p = grid.grid_to_physical(np.asarray(point_grid_mm, np.float64)[None, :])[0]
+    return f"LPS ({p[0]:.0f}, {p[1]:.0f}, {p[2]:.0f})"
+
+
+def _left_out_warning(name: str, fusion, grid, origin: np.ndarray, phys: np.ndarray,
+                      faces: np.ndarray) -> list:
+    """A warning when bone that M0 left out (joining it added a tunnel, see
+    poisson.remesh) lies outside the finished surface by more than LEFT_OUT_WARN_MM at its
+    farthest point: the surface stops short of bone the CT shows (a thin process or the tip of
+    a plate cut off). ``fusion``: M0's (poisson.Fusion, or None); ``grid``: the working grid;
+    ``origin``: the bone box's origin (x, y, z grid mm); ``phys``: the surface's vertices (n, 3)
+    in LPS mm; ``faces`` (m, 3)."""
+    if fusion is None or fusion.dropped_far is None:
+        return []
+    at = np.asarray(fusion.dropped_far, np.float64) + origin
+    far = grid.grid_to_physical(at[None, :])
+    gap = float(cKDTree(phys).query(far)[0][0])
+    if gap <= LEFT_OUT_WARN_MM or _inside(phys, faces, far[0]):
+        return []
+    return [f"{name}: bone the CT shows ({fusion.info['join_dropped_mm3'] / 1000:.2f} ml, "
+            f"thresholded) lies up to {gap:.1f} mm outside the surface near "
+            f"{_lps_text(grid, at)}: it was left out because joining it added a tunnel (the lace "
+            "of a thin plate, or a process on a thread), so the surface stops short of it there. "
+            "Check the surface against the CT there"]
+
+
+def _inside(vertices: np.ndarray, faces: np.ndarray, point: np.ndarray) -> bool:
+    """Is ``point`` (3,) inside the closed surface (vertices (n, 3), faces (m, 3))?"""
+    from .mesh.surface import inside_mask
+
+    return bool(inside_mask(Surface(vertices, faces), (1, 1, 1), 1.0, point)[0, 0, 0])
+
+
 def _plate_min_thickness(params: Parameters, d: float) -> float:
     """t_min (mm): the thinnest slab the working grid and M0's remeshing grid resolve."""
     edge = params.edge_length if params.edge_length is not None else d
@@ -827,6 +866,13 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
                            "detached, or thinned to a thread the remeshing cuts) was joined to M0 "
                            f"({fusion.info['joined_bone_mm3']:.0f} mm^3)",
                            int(fusion.info["joined_pieces"]), "pieces")
+    if fusion.info.get("join_dropped_mm3"):
+        bone.fallbacks.add("poisson", "bone the thresholds hold that the Poisson surface missed "
+                           f"by more than {fusion.solid_reach_mm:g} mm was left out: joining it to "
+                           "M0 added a tunnel (the lace of a thin plate, or a process on a "
+                           f"thread); it reaches {fusion.info['join_dropped_reach_mm']:.1f} mm "
+                           "beyond M0", int(round(fusion.info["join_dropped_mm3"])), "mm^3",
+                           _lps_text(ws.prep.grid, fusion.dropped_far + origin))
     if fusion.info.get("narrow_plugs"):
         bone.fallbacks.add("poisson", "tunnels narrower than the CT resolves (closed by a ball of "
                            f"{fusion.info['narrow_radius_mm']:.2f} mm at most), which the "
@@ -1181,6 +1227,7 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
         plaus.segment_genus = _plaus.segment_genus(
             segment & _plaus.image_mask(box, planes, ws.d), ws.d, ws.prep.coarseness)
     warnings += _plaus.tunnel_warning(name, checks.genus, plaus.segment_genus)
+    warnings += _left_out_warning(name, bone.fusion, grid, bone.masks.origin, phys, faces)
     constraints = bone.constraints
     dist, _ = cKDTree(grid.grid_to_physical(constraints)).query(phys, workers=-1) \
         if len(constraints) else (np.zeros(len(phys)), None)

@@ -283,3 +283,34 @@ def test_fallbacks_reach_the_bone_and_joint_reports_json_and_summary(monkeypatch
     assert any(f["stage"] == "thresholds" for f in to_plain(joint.report)["fallbacks"])
     text = shape_text(rep)
     assert f"fallbacks: {len(rep.fallbacks)} (" in text and "unrefined surface is kept" in text
+
+
+def test_bone_left_out_of_m0_is_warned_where_the_surface_stops_short_of_it():
+    """M0 leaves out missed bone whose joining adds a tunnel (poisson.remesh: fusion.dropped_far,
+    join_dropped_mm3). Where that bone lies farther than LEFT_OUT_WARN_MM outside the finished
+    surface (a sacrum's tip cut off by 15 mm on the 3 mm held-out pelvis), the bone says so,
+    with where; nearer, or inside the surface, it does not. An oblique grid: the place is
+    given in LPS."""
+    from BoneWatertightLib.pipeline import LEFT_OUT_WARN_MM, _left_out_warning
+    from BoneWatertightLib.stages.poisson import Fusion
+    from BoneWatertightLib.stages.prepare import Grid
+
+    c, s = np.cos(0.4), np.sin(0.4)
+    direction = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    grid = Grid(origin=np.array([10.0, -20.0, 5.0]), direction=direction, spacing=0.5,
+                shape_zyx=(80, 80, 80))
+    box_origin = np.array([4.0, 6.0, 8.0])            # the bone's box on the grid (x, y, z mm)
+    centre = np.array([20.0, 20.0, 20.0])             # the surface's centre, box frame
+    verts, faces = icosphere(level=3, radius=10.0, centre=centre)
+    phys = grid.grid_to_physical(verts + box_origin)
+    fusion = Fusion(info={"join_dropped_mm3": 1140.0, "join_dropped_reach_mm": 15.0})
+    for outside, warned in ((15.0, True), (LEFT_OUT_WARN_MM - 1.0, False), (-5.0, False)):
+        fusion.dropped_far = centre + np.array([0.0, 0.0, 10.0 + outside])
+        out = _left_out_warning("sacrum", fusion, grid, box_origin, phys, faces)
+        assert bool(out) == warned, (outside, out)
+        if warned:
+            p = grid.grid_to_physical((fusion.dropped_far + box_origin)[None, :])[0]
+            assert "1.14 ml" in out[0] and "up to 15.0 mm outside" in out[0]
+            assert f"LPS ({p[0]:.0f}, {p[1]:.0f}, {p[2]:.0f})" in out[0]
+    fusion.dropped_far = None
+    assert _left_out_warning("sacrum", fusion, grid, box_origin, phys, faces) == []

@@ -282,6 +282,11 @@ class Fusion:
     # depth 7 detaches as a small component, which the largest-component rule drops).
     solid: np.ndarray = None
     solid_reach_mm: float = 3.0
+    # The point (x, y, z mm, the surface's frame) of the missed solid farthest from the surface:
+    # of the bone joined to M0 (``joined_far``), or of the bone left out because joining it
+    # added a tunnel (``dropped_far``; its volume and reach in ``info``).
+    joined_far: Optional[np.ndarray] = None
+    dropped_far: Optional[np.ndarray] = None
 
 
 def surface_genus(surface: Surface) -> int:
@@ -420,8 +425,11 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         if plain is not None and (out is None
                                   or surface_genus(out) > surface_genus(plain)):
             dropped = fusion.info.get("joined_bone_mm3", 0.0)
+            reach = fusion.info.get("joined_reach_mm", 0.0)
             fusion.info, fusion.fill_mask = plain_state
-            fusion.info.update(joined_bone_mm3=0.0, joined_pieces=0, join_dropped_mm3=dropped)
+            fusion.info.update(joined_bone_mm3=0.0, joined_pieces=0, join_dropped_mm3=dropped,
+                               join_dropped_reach_mm=reach)
+            fusion.dropped_far, fusion.joined_far = fusion.joined_far, None
             out = plain
     else:
         out = _contour_fused(occ, lo, h, fusion, smooth_iterations, smoothed)
@@ -490,7 +498,11 @@ def _join_missed_bone(occ: np.ndarray, lo, h: float, fusion: Fusion,
         return occ
     mine = np.isin(pieces, ids)
     keep = mine & (far | (distance_outside(far & mine, h) <= reach + h))
-    fusion.info.update(joined_bone_mm3=float(keep.sum() * h ** 3), joined_pieces=int(len(ids)))
+    fusion.info.update(joined_bone_mm3=float(keep.sum() * h ** 3), joined_pieces=int(len(ids)),
+                       joined_reach_mm=float(dist_occ[keep].max()))
+    k = int(np.argmax(np.where(keep, dist_occ, -1.0)))
+    fusion.joined_far = np.array(np.unravel_index(k, keep.shape)[::-1], np.float64) * h \
+        + np.asarray(lo, np.float64)
     return occ | keep
 
 
