@@ -75,14 +75,14 @@ REFINE_SIGMA_MM = 0.4
 REFINE_SIGMA_MIN_VOXELS = 0.5
 # A bone reaches at most max(segment_dilation, BAND_COARSENESS x coarseness) beyond its label.
 BAND_COARSENESS = 1.0
-# M0 is cut back out of what is neither bone nor segment: farther than CARVE_SEGMENT_COARSENESS
-# x coarseness + d from the (trusted) segment and farther than CARVE_BONE_MM + d from the bone
-# at HT (the segment's own uncertainty and the CT's partial-volume foot stay untouched).
-CARVE_SEGMENT_COARSENESS = 0.5
 # Bone that M0 left out (joining it added a tunnel) is warned about when it lies farther than
 # this outside the finished surface: the thin-plate bones' bound on the largest error (issue 18:
 # max <= 5 mm to the reference); nearer, the deformation and the refinement hold it.
 LEFT_OUT_WARN_MM = 5.0
+# M0 is cut back out of what is neither bone nor segment: farther than CARVE_SEGMENT_COARSENESS
+# x coarseness + d from the (trusted) segment and farther than CARVE_BONE_MM + d from the bone
+# at HT (the segment's own uncertainty and the CT's partial-volume foot stay untouched).
+CARVE_SEGMENT_COARSENESS = 0.5
 CARVE_BONE_MM = 1.0
 # ... and wherever the CT shows soft tissue (below the ownership's label level, its
 # info["label_level_hu"]) outside the segment, whatever the segment's and the bone's distance:
