@@ -736,16 +736,19 @@ def _lps_text(grid, point_grid_mm: np.ndarray) -> str:
 
 
 def _left_out_warning(name: str, fusion, grid, origin: np.ndarray, phys: np.ndarray,
-                      faces: np.ndarray) -> list:
+                      faces: np.ndarray, planes=()) -> list:
     """A warning when bone that M0 left out (joining it added a tunnel, see
     poisson.remesh) lies outside the finished surface by more than LEFT_OUT_WARN_MM at its
     farthest point: the surface stops short of bone the CT shows (a thin process or the tip of
     a plate cut off). ``fusion``: M0's (poisson.Fusion, or None); ``grid``: the working grid;
     ``origin``: the bone box's origin (x, y, z grid mm); ``phys``: the surface's vertices (n, 3)
-    in LPS mm; ``faces`` (m, 3)."""
+    in LPS mm; ``faces`` (m, 3); ``planes``: the cap planes (prepare.CapPlane) - beyond them
+    the grid continues the image's border, which shows no bone of its own."""
     if fusion is None or fusion.dropped_far is None:
         return []
     at = np.asarray(fusion.dropped_far, np.float64) + origin
+    if any((at[p.axis] - p.position) * p.side > 0 for p in planes):
+        return []
     far = grid.grid_to_physical(at[None, :])
     gap = float(cKDTree(phys).query(far)[0][0])
     if gap <= LEFT_OUT_WARN_MM or _inside(phys, faces, far[0]):
@@ -1227,7 +1230,8 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
         plaus.segment_genus = _plaus.segment_genus(
             segment & _plaus.image_mask(box, planes, ws.d), ws.d, ws.prep.coarseness)
     warnings += _plaus.tunnel_warning(name, checks.genus, plaus.segment_genus)
-    warnings += _left_out_warning(name, bone.fusion, grid, bone.masks.origin, phys, faces)
+    warnings += _left_out_warning(name, bone.fusion, grid, bone.masks.origin, phys, faces,
+                                  planes)
     constraints = bone.constraints
     dist, _ = cKDTree(grid.grid_to_physical(constraints)).query(phys, workers=-1) \
         if len(constraints) else (np.zeros(len(phys)), None)

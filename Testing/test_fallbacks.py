@@ -289,8 +289,8 @@ def test_bone_left_out_of_m0_is_warned_where_the_surface_stops_short_of_it():
     """M0 leaves out missed bone whose joining adds a tunnel (poisson.remesh: fusion.dropped_far,
     join_dropped_mm3). Where that bone lies farther than LEFT_OUT_WARN_MM outside the finished
     surface (a sacrum's tip cut off by 15 mm on the 3 mm held-out pelvis), the bone says so,
-    with where; nearer, or inside the surface, it does not. An oblique grid: the place is
-    given in LPS."""
+    with where; nearer, inside the surface or beyond a cap plane (the image's border), it does
+    not. An oblique grid: the place is given in LPS."""
     from BoneWatertightLib.pipeline import LEFT_OUT_WARN_MM, _left_out_warning
     from BoneWatertightLib.stages.poisson import Fusion
     from BoneWatertightLib.stages.prepare import Grid
@@ -312,5 +312,14 @@ def test_bone_left_out_of_m0_is_warned_where_the_surface_stops_short_of_it():
             p = grid.grid_to_physical((fusion.dropped_far + box_origin)[None, :])[0]
             assert "1.14 ml" in out[0] and "up to 15.0 mm outside" in out[0]
             assert f"LPS ({p[0]:.0f}, {p[1]:.0f}, {p[2]:.0f})" in out[0]
+    # beyond a cap plane (the image's border, continued by the grid) nothing is warned
+    from BoneWatertightLib.stages.prepare import CapPlane
+
+    fusion.dropped_far = centre + np.array([0.0, 0.0, 25.0])
+    at_z = fusion.dropped_far[2] + box_origin[2]
+    assert _left_out_warning("sacrum", fusion, grid, box_origin, phys, faces,
+                             [CapPlane(2, +1, at_z + 1.0)])
+    assert _left_out_warning("sacrum", fusion, grid, box_origin, phys, faces,
+                             [CapPlane(2, +1, at_z - 1.0)]) == []
     fusion.dropped_far = None
     assert _left_out_warning("sacrum", fusion, grid, box_origin, phys, faces) == []
