@@ -258,6 +258,8 @@ class BoneWork:
     contacts: dict = field(default_factory=dict)
     fallbacks: FallbackLog = field(default_factory=FallbackLog)  # what fell back, and where
     plates: Optional[_plates.Plates] = None  # thin plates the thresholds miss (grid mm)
+    # M0's tunnels through a thin plate the CT shows (_plate_holes; box mm)
+    plate_holes: dict = field(default_factory=dict)
     fusion: Optional[_poisson.Fusion] = None  # what M0 joined to the Poisson surface
     own_reference: float = float("nan")      # its cortex's contrast after eq. (15) (HU)
     profiles: Optional[tuple] = None         # its CT profiles then (refine.sample_profiles)
@@ -760,6 +762,64 @@ def _left_out_warning(name: str, fusion, grid, origin: np.ndarray, phys: np.ndar
             "Check the surface against the CT there"]
 
 
+def _plate_holes(ws: Workspace, bone: BoneWork, m0: Surface) -> dict:
+    """stages.plates.holes_across_plates of M0 (``m0``: vertices in the masks' box millimetres;
+    its tunnels are the finished surface's, as every later stage moves vertices only): its
+    tunnels through which the CT shows a thin plate; plug centres and ``mask`` on the box."""
+    genus = _poisson.surface_genus(m0)
+    if genus <= 0:
+        return {"tunnels": 0, "plugs": []}
+    from .mesh.surface import inside_mask
+
+    k, own, masks, d = bone.k, ws.own, bone.masks, ws.d
+    box = masks.box
+    inside = inside_mask(m0, tuple(s.stop - s.start for s in box), d)
+    soft = ws.thresholds["soft_tissue_hu"]
+    exclude = ((own.owner[box] > 0) & (own.owner[box] != k)) \
+        | ~_plaus.image_mask(box, ws.prep.caps.get(k, []), d)
+    return _plates.holes_across_plates(
+        inside, ws.prep.ct[box], d, native_spacing=ws.prep.ct_spacing, soft=soft,
+        max_contrast=_ownership.LABEL_LEVEL_FRACTION * (ws.ht - soft), exclude=exclude,
+        surface_genus=int(genus))
+
+
+def _mask_field(mask: np.ndarray, d: float, shape: tuple, lo, h: float) -> np.ndarray:
+    """A (z, y, x) bool ``mask`` on a grid of step ``d`` from the origin, as a [0, 1] occupancy
+    on the grid of ``shape`` and step ``h`` whose voxel (0, 0, 0) is at ``lo`` (x, y, z mm):
+    trilinear, so its 0.5 level is the mask's boundary; 0 beyond the mask's box."""
+    out = np.zeros(shape, np.float32)
+    at = np.argwhere(mask)
+    if not len(at):
+        return out
+    lo = np.asarray(lo, np.float64)
+    first = np.maximum(np.floor(((at.min(axis=0)[::-1] - 1) * d - lo) / h), 0).astype(int)
+    last = np.minimum(np.ceil(((at.max(axis=0)[::-1] + 1) * d - lo) / h),
+                      np.array(shape[::-1]) - 1).astype(int)
+    if np.any(last < first):
+        return out
+    axes = [lo[i] + h * np.arange(first[i], last[i] + 1) for i in range(3)]  # x, y, z mm
+    zz, yy, xx = np.meshgrid(axes[2] / d, axes[1] / d, axes[0] / d, indexing="ij")
+    vals = ndimage.map_coordinates(mask.astype(np.float32), [zz, yy, xx], order=1, cval=0.0)
+    out[first[2]:last[2] + 1, first[1]:last[1] + 1, first[0]:last[0] + 1] = vals
+    return out
+
+
+def _plate_hole_warning(name: str, holes: dict, grid, origin: np.ndarray) -> list:
+    """A warning naming the surface's tunnels through a plate the CT shows (``holes``:
+    :func:`_plate_holes`), with the largest plugs' places (``origin``: the box's, grid mm)."""
+    n = int(holes.get("tunnels") or 0)
+    if n <= 0:
+        return []
+    corner = np.asarray(origin, np.float64)
+    places = "; ".join(
+        f"{_lps_text(grid, np.asarray(p['centre']) + corner)} ({p['hu_median']:.0f} HU)"
+        for p in holes["plugs"][:3])
+    return [f"{name}: {n} tunnel{'s' if n > 1 else ''} of the surface go{'' if n > 1 else 'es'} "
+            f"through a thin plate that the CT shows (a ridge above the soft tissue, below the "
+            f"thresholds or thinned away by the opening) near {places}: the bone has no hole "
+            "there. Check the surface; a lower HT or a finer CT closes it"]
+
+
 def _inside(vertices: np.ndarray, faces: np.ndarray, point: np.ndarray) -> bool:
     """Is ``point`` (3,) inside the closed surface (vertices (n, 3), faces (m, 3))?"""
     from .mesh.surface import inside_mask
@@ -845,24 +905,58 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     # The fill takes its material from the segment itself (smoothing would thin its thin parts
     # away); tunnels it cannot close, the thresholded bone may (W_HT holds W_H0 and the thin
     # plates).
-    fusion = _poisson.Fusion(label=trusted,
-                             label_origin=np.zeros(3), label_spacing=d,
-                             genus=genus,
-                             close_mm=(ws.prep.coarseness,), bone=masks.w_ht, carve=carve,
-                             strong=(ct_box >= ws.h0) & (ct_box <= params.theta_max))
     # A thin process of the bone's own (a sacral tip at 3 mm) that Poisson at depth 7
     # detaches as a small component is joined back from the bone the thresholds hold -
     # inside the image: beyond a cap plane the grid only continues the border slice.
     planes = ws.prep.caps.get(bone.k, [])
-    fusion.solid = (masks.occupancy & _plaus.image_mask(masks.box, planes, d) if planes
-                    else masks.occupancy)
-    fusion.solid_reach_mm = ws.prep.coarseness
     plates = bone.plates
-    if plates is not None and plates.n:
-        fusion.plates = lambda shape, lo, h: plates.field(shape, np.asarray(lo) + origin, h)
-        fusion.plates_box = (plates.points.min(axis=0) - origin,
-                             plates.points.max(axis=0) - origin)
+
+    def new_fusion(plugs=None):
+        """M0's evidence; ``plugs`` (box mask): plates across tunnels, fused as the slabs are."""
+        fusion = _poisson.Fusion(label=trusted, label_origin=np.zeros(3), label_spacing=d,
+                                 genus=genus, close_mm=(ws.prep.coarseness,), bone=masks.w_ht,
+                                 carve=carve,
+                                 strong=(ct_box >= ws.h0) & (ct_box <= params.theta_max))
+        fusion.solid = (masks.occupancy & _plaus.image_mask(masks.box, planes, d) if planes
+                        else masks.occupancy)
+        fusion.solid_reach_mm = ws.prep.coarseness
+        fields, boxes = [], []
+        if plates is not None and plates.n:
+            fields.append(lambda shape, lo, h: plates.field(shape, np.asarray(lo) + origin, h))
+            boxes.append((plates.points.min(axis=0) - origin, plates.points.max(axis=0) - origin))
+        if plugs is not None:
+            fields.append(lambda shape, lo, h: _mask_field(plugs, d, shape, lo, h))
+            at = np.argwhere(plugs)[:, ::-1] * d
+            boxes.append((at.min(axis=0) - d, at.max(axis=0) + d))
+        if fields:
+            fusion.plates = fields[0] if len(fields) == 1 else \
+                (lambda shape, lo, h: np.maximum.reduce([f(shape, lo, h) for f in fields]))
+            fusion.plates_box = (np.min([b[0] for b in boxes], axis=0),
+                                 np.max([b[1] for b in boxes], axis=0))
+        return fusion
+
+    fusion = new_fusion()
     m0, raw = initial_surface(points, normals, params.poisson_depth, edge, fusion=fusion)
+    # M0's tunnels through a plate the CT shows across them (a wall the opening thinned away,
+    # a plate below the thresholds): remeshed once more with the plates' plugs fused.
+    holes = _plate_holes(ws, bone, m0)
+    plugs = holes.pop("mask", None)
+    if plugs is not None:
+        retry = new_fusion(plugs)
+        again = _poisson.remesh(raw, edge, fusion=retry)
+        closed = _poisson.surface_genus(m0) - _poisson.surface_genus(again)
+        if closed > 0:
+            m0, fusion = again, retry
+            holes["closed"] = int(closed)
+            holes["tunnels"] = max(0, holes["tunnels"] - int(closed))
+            bone.fallbacks.add("poisson", "tunnels of M0 through a thin plate that the CT shows "
+                               "across them (a ridge above the soft tissue that the thresholds "
+                               "or the opening lost) were closed with the plate's crest "
+                               f"({float(plugs.sum()) * d ** 3:.0f} mm^3)", int(closed),
+                               "tunnels", "; ".join(
+                                   _lps_text(ws.prep.grid, np.asarray(p["centre"]) + origin)
+                                   for p in holes["plugs"][:3]))
+    bone.plate_holes = holes
     if fusion.info.get("joined_pieces"):
         bone.fallbacks.add("poisson", "bone the thresholds hold that the Poisson surface missed "
                            f"by more than {fusion.solid_reach_mm:g} mm (a thin process it "
@@ -1230,6 +1324,8 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
         plaus.segment_genus = _plaus.segment_genus(
             segment & _plaus.image_mask(box, planes, ws.d), ws.d, ws.prep.coarseness)
     warnings += _plaus.tunnel_warning(name, checks.genus, plaus.segment_genus)
+    plaus.plate_holes = bone.plate_holes
+    warnings += _plate_hole_warning(name, bone.plate_holes, grid, bone.masks.origin)
     warnings += _left_out_warning(name, bone.fusion, grid, bone.masks.origin, phys, faces,
                                   planes)
     constraints = bone.constraints

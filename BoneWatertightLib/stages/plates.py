@@ -349,3 +349,246 @@ def _ridges(sm, idx, d, native, cortex, min_contrast):
     keep = (contrast >= min_contrast) & (w >= PLATE_MIN_MM) & (w < PLATE_MAX_RESOLUTION * res)
     return idx[keep], pts[keep], e[keep], w[keep], contrast[keep]
 
+
+
+# Plates across a surface's holes are sought up to HOLE_REACH_MM from it (holes up to about
+# twice that across).
+HOLE_REACH_MM = 8.0
+
+
+def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
+                        native_spacing, soft: float, max_contrast: float,
+                        exclude: np.ndarray, surface_genus: int,
+                        reach_mm: float = HOLE_REACH_MM) -> dict:
+    """Tunnels of a surface through which the CT shows a thin plate, and their plugs.
+
+    A hole through a plate the CT barely resolves (a wall of two voxels that the opening
+    removed, a plate below the thresholds) has the plate's blurred ridge across it: across the
+    plate the CT peaks in the hole and falls on both sides. A foramen, a canal or the blurred
+    end of a slot is the opposite, a valley, however much its blur raises it above the soft
+    tissue.
+
+    1. The crests of bright sheets outside the surface and within ``reach_mm`` of it
+       (:func:`_ridge_voxels`), grown by a voxel (a crest one voxel thin, met by the surface's
+       rim); each piece that closes a tunnel of the surface's voxels (:func:`_tunnel_plugs`)
+       is a plug. (A closing would not do: a ball closes a hole of radius r in a plate t thick
+       only when larger than about r^2 / t.)
+    2. A plug is a plate's when, across it (:func:`_across`), its median peak stands at least
+       the contrast above the soft tissue and above the lower sides, it touches no
+       ``exclude`` voxel, and the hole is wider than the CT's blur in its plane (its deepest
+       voxel PLATE_WINDOW x that resolution from the surface: a narrower hole reads bright
+       in the middle whether or not a plate spans it).
+    3. Each plate's plug, largest first, is confirmed on contours: kept when the voxels'
+       largest closed surface with it has fewer tunnels than without it and than the surface
+       itself (a pocket closed against the surface, or a tunnel of the voxels alone, is not
+       counted).
+
+    Parameters
+    ----------
+    inside : (z, y, x) bool array
+        The surface's inside on the working grid (a box of it).
+    ct : (z, y, x) float array
+        The CT (HU) on the same box of the working grid.
+    spacing : float
+        Working voxel size d (mm).
+    native_spacing : sequence of 3 floats
+        The CT's own spacing (x, y, z) in mm, in the working grid's axes.
+    soft : float
+        Soft-tissue level (HU).
+    max_contrast : float
+        The contrast a plate needs is PLATE_NOISE_FACTOR x the noise of the smoothed CT in the
+        box's soft tissue, but never more than this (HU).
+    exclude : (z, y, x) bool array
+        Where a plate of this bone cannot be (another bone's voxels, beyond the image).
+    surface_genus : int
+        The surface's own genus (its mesh's); 0: nothing is sought.
+    reach_mm : float
+        How far outside the surface a plate's crest is sought.
+
+    Returns
+    -------
+    dict
+        ``tunnels``: how many of the surface's tunnels go through a plate (0 when none);
+        ``plugs``: their plugs, largest first - ``voxels``, ``centre`` (x, y, z mm of the
+        box), ``hu_median`` (the CT on it), ``contrast_hu`` (its median peak over its sides);
+        ``other_plugs``: plugs of tunnels that are not a plate's; ``mask``: the plates' plugs,
+        (z, y, x) bool like ``inside`` (only when there are some); ``min_contrast_hu``,
+        ``noise_hu``.
+    """
+    from ..mesh.distance import distance_outside
+    from .poisson import contour, surface_genus as genus_of
+
+    d = float(spacing)
+    out = {"tunnels": 0, "plugs": [], "other_plugs": 0, "min_contrast_hu": None,
+           "noise_hu": None}
+    if surface_genus <= 0 or not inside.any():
+        return out
+    native = np.asarray(native_spacing, np.float64)
+    sigma_mm = max(d, PLATE_SIGMA_FRACTION * float(native.min()))
+    sm = ndimage.gaussian_filter(np.asarray(ct, np.float32), sigma=sigma_mm / d, mode="nearest")
+    noise = soft_tissue_noise(sm, inside, soft)
+    min_contrast = min(max_contrast, PLATE_NOISE_FACTOR * noise)
+    out.update(min_contrast_hu=float(min_contrast), noise_hu=float(noise))
+    depth = distance_outside(inside, d)
+    cand = (sm >= soft + min_contrast) & ~inside & ~exclude & (depth <= reach_mm)
+    for axis in range(3):
+        cand[(slice(None),) * axis + ([0, -1],)] = False
+    crest = np.zeros(inside.shape, bool)
+    crest[tuple(_ridge_voxels(sm, cand, d, native, min_contrast).T)] = True
+    del cand
+    crest = ndimage.binary_dilation(crest, structure=np.ones((3, 3, 3), bool)) & ~inside \
+        & ~exclude
+    found, masks = [], []
+    for plug in _tunnel_plugs(inside, crest):
+        idx = np.argwhere(plug)
+        peak, contrast, plane = _across(sm, idx, d, native)
+        wide = float(depth[plug].max()) >= PLATE_WINDOW * plane
+        if wide and peak - soft >= min_contrast and contrast >= min_contrast:
+            masks.append(plug)
+            found.append({"voxels": int(len(idx)),
+                          "centre": [float(c) for c in idx.mean(axis=0)[::-1] * d],
+                          "hu_median": float(np.median(np.asarray(ct)[plug])),
+                          "contrast_hu": float(contrast)})
+        else:
+            out["other_plugs"] += 1
+    if not found:
+        return out
+
+    def genus(m):
+        return genus_of(contour(np.pad(m, 1).astype(np.float32), (0.0, 0.0, 0.0), d, 0.5,
+                                smooth_iterations=0, relax=False))
+
+    closed = inside.copy()
+    tunnels = min(genus(closed), int(surface_genus))
+    kept = []
+    for k in np.argsort([-p["voxels"] for p in found], kind="stable"):
+        if tunnels <= 0:
+            break
+        g = genus(closed | masks[k])
+        if g < tunnels:
+            closed |= masks[k]
+            kept.append(found[k])
+            out["tunnels"] += int(tunnels - g)
+            tunnels = g
+        else:
+            out["other_plugs"] += 1
+    out["plugs"] = kept
+    if kept:
+        out["mask"] = closed & ~inside
+    return out
+
+
+def _across(sm: np.ndarray, idx: np.ndarray, d: float, native: np.ndarray) -> tuple:
+    """(median peak, median contrast, resolution in its plane) of the smoothed CT ``sm``
+    across a plug of voxels idx (k, 3) (z, y, x): along the plug's thinnest direction (its
+    voxels' least principal axis; for a plug of fewer than four voxels, the Hessian's most
+    negative direction at each), the peak within one voxel of each and its height over the mean
+    of the lowest values on either side within PLATE_WINDOW x the CT's resolution along that
+    direction; the CT's resolution across the plug's plane (mm, the root mean square over its
+    directions)."""
+    pts = idx.astype(np.float64)
+    if len(idx) >= 4:
+        centred = pts - pts.mean(axis=0)
+        normal = np.linalg.eigh(centred.T @ centred)[1][:, 0]      # z, y, x
+        normals = np.repeat(normal[None, :], len(idx), axis=0)
+    else:
+        inner = np.all((idx > 0) & (idx < np.array(sm.shape) - 1), axis=1)
+        if not inner.any():
+            return -np.inf, -np.inf, float(native.max())
+        idx, pts = idx[inner], pts[inner]
+        normals = _hessian_ridge(sm, idx, d)[1][:, ::-1]            # x-y-z -> z, y, x
+    n2 = normals[:, ::-1] ** 2                                         # x, y, z
+    res = float(np.median(np.sqrt((n2 * native[None, :] ** 2).sum(axis=1))))
+    plane = float(np.median(np.sqrt(((1.0 - n2) * native[None, :] ** 2).sum(axis=1) / 2.0)))
+    # (at least two voxels: the sides lie beyond the peak's voxel)
+    window = max(PLATE_WINDOW * res, 2.0 * d)
+    t = np.arange(-window, window + 1e-9, 0.5 * d)
+    samples = pts[:, None, :] + (t[None, :, None] / d) * normals[:, None, :]
+    prof = ndimage.map_coordinates(sm, samples.reshape(-1, 3).T, order=1,
+                                   mode="nearest").reshape(len(pts), len(t))
+    peak = prof[:, np.abs(t) <= d].max(axis=1)
+    sides = 0.5 * (prof[:, t < -d].min(axis=1, initial=np.inf)
+                   + prof[:, t > d].min(axis=1, initial=np.inf))
+    return float(np.median(peak)), float(np.median(peak - sides)), plane
+
+
+
+def _tunnel_plugs(occupancy: np.ndarray, adds: np.ndarray) -> list:
+    """The pieces of ``adds`` (z, y, x bool; 26-connected) that each close a tunnel of
+    ``occupancy``: a piece touching it whose addition alone raises the Euler characteristic
+    (poisson.euler_number, counted with 26- or with 6-connected voxels; additive, so counted on
+    a window around the piece) by more than the cavities it encloses there (the characteristic
+    counts components - tunnels + cavities: a piece that closes a pocket against the surface
+    raises it too). Masks of the whole volume."""
+    from .poisson import euler_number
+
+    pieces, n = ndimage.label(adds, structure=np.ones((3, 3, 3), bool))
+    if not n:
+        return []
+    # a piece of its own closes no tunnel (it adds a component)
+    near = ndimage.binary_dilation(occupancy, structure=np.ones((3, 3, 3), bool))
+    touching = np.zeros(n + 1, bool)
+    touching[np.unique(pieces[near & adds])] = True
+    found = []
+    for i, box in enumerate(ndimage.find_objects(pieces), start=1):
+        if box is None or not touching[i]:
+            continue
+        win = tuple(slice(max(0, b.start - 2), min(s, b.stop + 2))
+                    for b, s in zip(box, occupancy.shape))
+        piece = pieces[win] == i
+        before = occupancy[win]
+        after = before | piece
+        for c in (26, 6):
+            rise = euler_number(after, c) - euler_number(before, c)
+            if rise > 0 and rise > _cavities(after, c) - _cavities(before, c):
+                mask = np.zeros(occupancy.shape, bool)
+                mask[win] = piece
+                found.append(mask)
+                break
+    return found
+
+
+def _cavities(mask: np.ndarray, connectivity: int) -> int:
+    """Pieces of the complement of ``mask`` (z, y, x bool) that do not reach the array's faces
+    (6-connected for 26-connected voxels, and 26- for 6-)."""
+    structure = ndimage.generate_binary_structure(3, 1 if connectivity == 26 else 3)
+    holes, n = ndimage.label(~mask, structure=structure)
+    if not n:
+        return 0
+    faces = np.concatenate([holes[[0, -1]].ravel(), holes[:, [0, -1]].ravel(),
+                            holes[:, :, [0, -1]].ravel()])
+    return int(n - len(np.unique(faces[faces > 0])))
+
+
+def _ridge_voxels(sm: np.ndarray, cand: np.ndarray, d: float, native: np.ndarray,
+                  min_contrast: float) -> np.ndarray:
+    """Of candidate voxels ``cand`` (z, y, x bool, not on the array's faces): those on a bright
+    sheet's crest - one strongly negative Hessian eigenvalue (PLATE_SHEETNESS), the sub-voxel
+    maximum along its eigenvector within the voxel - standing at least ``min_contrast`` above
+    the lowest values on both sides within PLATE_WINDOW x the CT's resolution along it (as
+    :func:`_ridges`, without the thickness bounds: any plate counts). (k, 3) z, y, x."""
+    peak_any = np.zeros(sm.shape, bool)
+    for axis in range(3):
+        peak_any |= (sm >= np.roll(sm, 1, axis=axis)) & (sm >= np.roll(sm, -1, axis=axis))
+    idx = np.argwhere(cand & peak_any)
+    kept = []
+    for a in range(0, len(idx), CHUNK):
+        part = idx[a:a + CHUNK]
+        lam, e, delta = _hessian_ridge(sm, part, d)
+        ok = (lam[:, 0] < 0) & (lam[:, 1] > PLATE_SHEETNESS * lam[:, 0]) & \
+            (np.abs(delta) <= 0.5 * d * np.abs(e).sum(axis=1))
+        part, e = part[ok], e[ok]
+        if not len(part):
+            continue
+        res = np.sqrt(((e * native[None, :]) ** 2).sum(axis=1))
+        window = np.maximum(PLATE_WINDOW * res, 2.0 * d)
+        t = np.arange(-float(window.max()), float(window.max()) + 1e-9, 0.5 * d)
+        samples = part[:, None, :].astype(np.float64) + (t[None, :, None] / d) * e[:, None, ::-1]
+        prof = ndimage.map_coordinates(sm, samples.reshape(-1, 3).T, order=1,
+                                       mode="nearest").reshape(len(part), len(t))
+        within = np.abs(t)[None, :] <= window[:, None]
+        centre = prof[:, np.argmin(np.abs(t))]
+        left = np.where(within & (t[None, :] < -d), prof, np.inf).min(axis=1)
+        right = np.where(within & (t[None, :] > d), prof, np.inf).min(axis=1)
+        kept.append(part[centre - 0.5 * (left + right) >= min_contrast])
+    return np.concatenate(kept) if kept else np.zeros((0, 3), np.int64)

@@ -144,6 +144,9 @@ class Plausibility:
     unlabelled_contact_seen: float = 1.0
     surface_area_mm2: float = 0.0
     segment_genus: int | None = None
+    # Tunnels of the surface through a thin plate the CT shows (pipeline._plate_holes:
+    # stages.plates.holes_across_plates' "tunnels" and "plugs").
+    plate_holes: dict = field(default_factory=dict)
     bounds: dict = field(default_factory=dict)
     problems: list = field(default_factory=list)
     warnings: list = field(default_factory=list)

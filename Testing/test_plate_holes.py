@@ -1,0 +1,119 @@
+"""Tunnels of a surface through a thin plate the CT shows (stages.plates.holes_across_plates)
+and the warning that names them (pipeline._plate_hole_warning).
+
+A plate with a hole in its voxels: the CT either shows the plate across the hole (a faint
+ridge: the surface's tunnel is not the bone's) or shows the hole too (soft tissue in it: a
+foramen). Only the first is a hole through a plate; a hole over another bone's voxels is not
+this bone's; a surface without tunnels is not searched.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from BoneWatertightLib import pipeline
+from BoneWatertightLib.stages import plates
+
+SOFT = 40.0
+SHAPE = (40, 64, 64)  # z, y, x; 1 mm voxels
+
+
+def _scene(plate_in_hole: bool, seed: int, hole_radius: float = 5.0):
+    """(inside, ct): a 3 mm plate 44 x 44 mm, its voxels with a round hole; the CT (blurred
+    1 mm, 20 HU of noise correlated over a voxel) with the plate 1 mm thick at 700 HU across the hole, or with the
+    hole."""
+    z, y, x = np.indices(SHAPE)
+    plate = (z >= 18) & (z < 21) & (np.abs(y - 32) < 22) & (np.abs(x - 32) < 22)
+    hole = (y - 32) ** 2 + (x - 32) ** 2 <= hole_radius ** 2
+    inside = plate & ~hole
+    ct = np.full(SHAPE, SOFT, np.float32)
+    ct[plate] = 1200.0
+    ct[plate & hole] = SOFT
+    if plate_in_hole:
+        ct[(z == 19) & hole] = 700.0
+    ct = ndimage.gaussian_filter(ct, 1.0)
+    # CT noise is correlated over about a voxel: white noise blurred, 20 HU.
+    noise = ndimage.gaussian_filter(np.random.default_rng(seed).normal(0.0, 1.0, SHAPE), 1.0)
+    ct += (20.0 * noise / noise.std()).astype(np.float32)
+    return inside, ct
+
+
+def _holes(inside, ct, exclude=None, genus=1):
+    return plates.holes_across_plates(
+        inside, ct, 1.0, native_spacing=(1.0, 1.0, 1.0), soft=SOFT, max_contrast=150.0,
+        exclude=np.zeros(SHAPE, bool) if exclude is None else exclude, surface_genus=genus)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_hole_through_a_plate_the_ct_shows_is_found(seed):
+    inside, ct = _scene(True, seed)
+    out = _holes(inside, ct)
+    assert out["tunnels"] == 1
+    plug = out["plugs"][0]
+    # the plug lies in the hole, at the plate's level (x, y, z mm of the box)
+    assert np.allclose(plug["centre"], (32.0, 32.0, 19.0), atol=1.5)
+    assert plug["contrast_hu"] >= out["min_contrast_hu"] > 0
+    assert plug["hu_median"] > SOFT + out["min_contrast_hu"]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_foramen_is_no_hole_through_a_plate(seed):
+    # The same hole with soft tissue in it: no crest of a plate spans it.
+    inside, ct = _scene(False, seed)
+    out = _holes(inside, ct)
+    assert out["tunnels"] == 0 and out["plugs"] == [] and "mask" not in out
+
+
+def test_a_hole_narrower_than_the_blur_is_not_judged():
+    # 3 voxels across, blurred by 1 mm: the CT in it stands far above the soft tissue and
+    # peaks across the plate whether or not a plate spans it.
+    for plate_in_hole in (False, True):
+        inside, ct = _scene(plate_in_hole, 0, hole_radius=1.0)
+        z, y, x = np.indices(SHAPE)
+        hole = ((y - 32) ** 2 + (x - 32) ** 2 <= 1.0) & (z == 19)
+        assert ct[hole].mean() > SOFT + 300.0
+        out = _holes(inside, ct)
+        assert out["tunnels"] == 0 and out["other_plugs"] >= 1  # found, not judged a plate
+
+
+def test_a_plate_over_another_bones_voxels_or_no_tunnel_is_not_searched():
+    inside, ct = _scene(True, 0)
+    z, y, x = np.indices(SHAPE)
+    other = (z == 19) & ((y - 32) ** 2 + (x - 32) ** 2 <= 2)
+    assert _holes(inside, ct, exclude=other)["tunnels"] == 0
+    assert _holes(inside, ct, genus=0) == {"tunnels": 0, "plugs": [], "other_plugs": 0,
+                                           "min_contrast_hu": None, "noise_hu": None}
+
+
+def test_a_lid_over_a_pocket_is_no_plug_of_a_tunnel():
+    # A foramen (the surface's real tunnel) and, beside it, a cup standing on the plate whose
+    # mouth the CT closes with a faint plate: adding the lid raises the voxels' Euler
+    # characteristic (a cavity, deeper than the lid's window) but closes no tunnel.
+    inside, ct = _scene(False, 0)
+    z, y, x = np.indices(SHAPE)
+    ring = (z >= 21) & (z < 28) & (np.abs(y - 20) <= 5) & (np.abs(x - 20) <= 5) \
+        & ~((np.abs(y - 20) <= 3) & (np.abs(x - 20) <= 3))
+    lid = (z == 28) & (np.abs(y - 20) <= 5) & (np.abs(x - 20) <= 5)
+    add = np.zeros(SHAPE, np.float32)
+    add[ring] = 1200.0 - SOFT
+    add[lid] = 700.0 - SOFT
+    ct = ct + ndimage.gaussian_filter(add, 1.0)
+    out = _holes(inside | ring, ct)
+    assert out["tunnels"] == 0 and out["other_plugs"] >= 1
+
+
+def test_the_warning_names_the_places_in_lps():
+    class Grid:  # the working grid: x-y-z mm -> LPS mm, a shift
+        def grid_to_physical(self, p):
+            return np.asarray(p, float) + [100.0, 200.0, 300.0]
+
+    holes = {"tunnels": 2, "plugs": [
+        {"voxels": 40, "centre": [1.0, 2.0, 3.0], "hu_median": 305.0, "contrast_hu": 120.0},
+        {"voxels": 9, "centre": [5.0, 5.0, 5.0], "hu_median": 210.0, "contrast_hu": 80.0}]}
+    (text,) = pipeline._plate_hole_warning("hip", holes, Grid(), np.array([10.0, 20.0, 30.0]))
+    assert text.startswith("hip: 2 tunnels of the surface go through a thin plate")
+    assert "LPS (111, 222, 333) (305 HU)" in text and "LPS (115, 225, 335) (210 HU)" in text
+    assert pipeline._plate_hole_warning("hip", {"tunnels": 0, "plugs": []}, Grid(),
+                                        np.zeros(3)) == []
