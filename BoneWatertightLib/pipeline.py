@@ -780,7 +780,8 @@ def _plate_holes(ws: Workspace, bone: BoneWork, m0: Surface) -> dict:
     return _plates.holes_across_plates(
         inside, ws.prep.ct[box], d, native_spacing=ws.prep.ct_spacing, soft=soft,
         max_contrast=_ownership.LABEL_LEVEL_FRACTION * (ws.ht - soft), exclude=exclude,
-        surface_genus=int(genus))
+        surface_genus=int(genus),
+        noise=(bone.plates.info.get("noise_hu") if bone.plates is not None else None))
 
 
 def _mask_field(mask: np.ndarray, d: float, shape: tuple, lo, h: float) -> np.ndarray:

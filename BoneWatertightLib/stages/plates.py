@@ -239,7 +239,9 @@ def find_plates(ct: np.ndarray, region: np.ndarray, bone: np.ndarray, resolved: 
              for a in range(0, len(idx), CHUNK)]
     idx = np.concatenate([f[0] for f in found]) if found else np.zeros((0, 3), np.int64)
     if not len(idx):
-        return empty_plates(d)
+        none = empty_plates(d)
+        none.info["noise_hu"] = float(noise)
+        return none
     pts, e, w, contrast = (np.concatenate([f[i] for f in found]) for i in range(1, 5))
     # Ridge pieces: kept when they touch the bone's evidence (a plate of the bone, not a
     # structure of the soft tissue beside it).
@@ -359,7 +361,7 @@ HOLE_REACH_MM = 8.0
 def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
                         native_spacing, soft: float, max_contrast: float,
                         exclude: np.ndarray, surface_genus: int,
-                        reach_mm: float = HOLE_REACH_MM) -> dict:
+                        reach_mm: float = HOLE_REACH_MM, noise: float = None) -> dict:
     """Tunnels of a surface through which the CT shows a thin plate, and their plugs.
 
     A hole through a plate the CT barely resolves (a wall of two voxels that the opening
@@ -378,10 +380,10 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
        ``exclude`` voxel, and the hole is wider than the CT's blur in its plane (its deepest
        voxel PLATE_WINDOW x that resolution from the surface: a narrower hole reads bright
        in the middle whether or not a plate spans it).
-    3. Each plate's plug, largest first, is confirmed on contours: kept when the voxels'
-       largest closed surface with it has fewer tunnels than without it and than the surface
-       itself (a pocket closed against the surface, or a tunnel of the voxels alone, is not
-       counted).
+    3. Each plate's plug, largest first, is confirmed on the whole box: kept when the voxels
+       with it have fewer tunnels (:func:`_tunnels`) than without it and than the surface
+       itself (a pocket closed against the surface deeper than the plug's window, or a tunnel
+       of the voxels alone, is not counted).
 
     Parameters
     ----------
@@ -404,6 +406,9 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
         The surface's own genus (its mesh's); 0: nothing is sought.
     reach_mm : float
         How far outside the surface a plate's crest is sought.
+    noise : float, optional
+        The smoothed CT's noise in the soft tissue (HU; :func:`soft_tissue_noise`, measured
+        again when not given).
 
     Returns
     -------
@@ -416,7 +421,6 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
         ``noise_hu``.
     """
     from ..mesh.distance import distance_outside
-    from .poisson import contour, surface_genus as genus_of
 
     d = float(spacing)
     out = {"tunnels": 0, "plugs": [], "other_plugs": 0, "min_contrast_hu": None,
@@ -426,7 +430,8 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
     native = np.asarray(native_spacing, np.float64)
     sigma_mm = max(d, PLATE_SIGMA_FRACTION * float(native.min()))
     sm = ndimage.gaussian_filter(np.asarray(ct, np.float32), sigma=sigma_mm / d, mode="nearest")
-    noise = soft_tissue_noise(sm, inside, soft)
+    if noise is None:
+        noise = soft_tissue_noise(sm, inside, soft)
     min_contrast = min(max_contrast, PLATE_NOISE_FACTOR * noise)
     out.update(min_contrast_hu=float(min_contrast), noise_hu=float(noise))
     depth = distance_outside(inside, d)
@@ -439,7 +444,7 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
     crest = ndimage.binary_dilation(crest, structure=np.ones((3, 3, 3), bool)) & ~inside \
         & ~exclude
     found, masks = [], []
-    for plug in _tunnel_plugs(inside, crest):
+    for plug in _tunnel_plugs(inside, crest, depth <= 1.75 * d):
         idx = np.argwhere(plug)
         peak, contrast, plane = _across(sm, idx, d, native)
         wide = float(depth[plug].max()) >= PLATE_WINDOW * plane
@@ -454,17 +459,13 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
     if not found:
         return out
 
-    def genus(m):
-        return genus_of(contour(np.pad(m, 1).astype(np.float32), (0.0, 0.0, 0.0), d, 0.5,
-                                smooth_iterations=0, relax=False))
-
     closed = inside.copy()
-    tunnels = min(genus(closed), int(surface_genus))
+    tunnels = min(_tunnels(closed), int(surface_genus))
     kept = []
     for k in np.argsort([-p["voxels"] for p in found], kind="stable"):
         if tunnels <= 0:
             break
-        g = genus(closed | masks[k])
+        g = _tunnels(closed | masks[k])
         if g < tunnels:
             closed |= masks[k]
             kept.append(found[k])
@@ -513,20 +514,20 @@ def _across(sm: np.ndarray, idx: np.ndarray, d: float, native: np.ndarray) -> tu
 
 
 
-def _tunnel_plugs(occupancy: np.ndarray, adds: np.ndarray) -> list:
+def _tunnel_plugs(occupancy: np.ndarray, adds: np.ndarray, near: np.ndarray) -> list:
     """The pieces of ``adds`` (z, y, x bool; 26-connected) that each close a tunnel of
-    ``occupancy``: a piece touching it whose addition alone raises the Euler characteristic
-    (poisson.euler_number, counted with 26- or with 6-connected voxels; additive, so counted on
-    a window around the piece) by more than the cavities it encloses there (the characteristic
-    counts components - tunnels + cavities: a piece that closes a pocket against the surface
-    raises it too). Masks of the whole volume."""
+    ``occupancy``: a piece touching it (``near``: the voxels 26-adjacent to it) whose addition
+    alone raises the Euler characteristic (poisson.euler_number, counted with 26- or with
+    6-connected voxels; additive, so counted on a window around the piece) by more than the
+    cavities it encloses there (the characteristic counts components - tunnels + cavities: a
+    piece that closes a pocket against the surface raises it too). Masks of the whole
+    volume."""
     from .poisson import euler_number
 
     pieces, n = ndimage.label(adds, structure=np.ones((3, 3, 3), bool))
     if not n:
         return []
     # a piece of its own closes no tunnel (it adds a component)
-    near = ndimage.binary_dilation(occupancy, structure=np.ones((3, 3, 3), bool))
     touching = np.zeros(n + 1, bool)
     touching[np.unique(pieces[near & adds])] = True
     found = []
@@ -546,6 +547,15 @@ def _tunnel_plugs(occupancy: np.ndarray, adds: np.ndarray) -> list:
                 found.append(mask)
                 break
     return found
+
+
+def _tunnels(mask: np.ndarray) -> int:
+    """Tunnels of the 26-connected voxels of ``mask`` (z, y, x bool), all its pieces together:
+    components + cavities - Euler characteristic."""
+    from .poisson import euler_number
+
+    pieces = ndimage.label(mask, structure=np.ones((3, 3, 3), bool))[1]
+    return int(pieces + _cavities(mask, 26) - euler_number(mask, 26))
 
 
 def _cavities(mask: np.ndarray, connectivity: int) -> int:
