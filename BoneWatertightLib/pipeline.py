@@ -816,9 +816,10 @@ def _plate_hole_warning(name: str, holes: dict, grid, origin: np.ndarray) -> lis
         f"{_lps_text(grid, np.asarray(p['centre']) + corner)} ({p['hu_median']:.0f} HU)"
         for p in holes["plugs"][:3])
     return [f"{name}: {n} tunnel{'s' if n > 1 else ''} of the surface go{'' if n > 1 else 'es'} "
-            f"through a thin plate that the CT shows (a ridge above the soft tissue, below the "
-            f"thresholds or thinned away by the opening) near {places}: the bone has no hole "
-            "there. Check the surface; a lower HT or a finer CT closes it"]
+            f"through a thin plate that the CT shows across the hole (a ridge above the soft "
+            f"tissue, below the thresholds or thinned away by the opening) near {places}: the "
+            "hole is likely not the bone's. Check the surface there; a lower HT or a finer CT "
+            "closes it"]
 
 
 def _inside(vertices: np.ndarray, faces: np.ndarray, point: np.ndarray) -> bool:

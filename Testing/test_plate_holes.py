@@ -117,3 +117,25 @@ def test_the_warning_names_the_places_in_lps():
     assert "LPS (111, 222, 333) (305 HU)" in text and "LPS (115, 225, 335) (210 HU)" in text
     assert pipeline._plate_hole_warning("hip", {"tunnels": 0, "plugs": []}, Grid(),
                                         np.zeros(3)) == []
+
+
+def test_a_plug_mask_becomes_an_occupancy_on_m0s_grid():
+    # A plug on the working grid (1 mm) as the remeshing's occupancy (0.4 mm, shifted): 1
+    # inside, 0 beyond a voxel from it, 0.5 on its boundary (half a voxel out from the last
+    # voxel centre).
+    mask = np.zeros((10, 12, 14), bool)
+    mask[4:6, 3:9, 5:10] = True
+    lo, h, shape = np.array([0.2, -0.6, 0.6]), 0.4, (30, 35, 40)
+    field = pipeline._mask_field(mask, 1.0, shape, lo, h)
+    zz, yy, xx = np.indices(shape)
+    x, y, z = lo[0] + h * xx, lo[1] + h * yy, lo[2] + h * zz
+    core = (z >= 4) & (z <= 5) & (y >= 3) & (y <= 8) & (x >= 5) & (x <= 9)
+    assert np.allclose(field[core], 1.0)
+    far = (z <= 2.9) | (z >= 7.1) | (y <= 1.9) | (y >= 10.1) | (x <= 3.9) | (x >= 11.1)
+    assert np.all(field[far] == 0.0)
+    # along x through the plug's middle: 0.5 half a voxel beyond its last voxel (x = 9.5)
+    row = field[np.argmin(np.abs(lo[2] + h * np.arange(30) - 4.5)),
+                np.argmin(np.abs(lo[1] + h * np.arange(35) - 5.0))]
+    xs = lo[0] + h * np.arange(40)
+    assert np.interp(9.5, xs, row) == pytest.approx(0.5, abs=0.02)
+    assert np.interp(4.5, xs, row) == pytest.approx(0.5, abs=0.02)
