@@ -1,5 +1,5 @@
 """Tunnels of a surface through a thin plate the CT shows (stages.plates.holes_across_plates)
-and the warning that names them (pipeline._plate_hole_warning).
+and their plugs as M0's occupancy (pipeline._mask_field).
 
 A plate with a hole in its voxels: the CT either shows the plate across the hole (a faint
 ridge: the surface's tunnel is not the bone's) or shows the hole too (soft tissue in it: a
@@ -42,7 +42,8 @@ def _scene(plate_in_hole: bool, seed: int, hole_radius: float = 5.0):
 
 def _holes(inside, ct, exclude=None, genus=1):
     return plates.holes_across_plates(
-        inside, ct, 1.0, native_spacing=(1.0, 1.0, 1.0), soft=SOFT, max_contrast=150.0,
+        inside, ct, 1.0, native_spacing=(1.0, 1.0, 1.0), soft=SOFT, cortex=1200.0,
+        max_contrast=150.0,
         exclude=np.zeros(SHAPE, bool) if exclude is None else exclude, surface_genus=genus)
 
 
@@ -102,21 +103,6 @@ def test_a_lid_over_a_pocket_is_no_plug_of_a_tunnel():
     ct = ct + ndimage.gaussian_filter(add, 1.0)
     out = _holes(inside | ring, ct)
     assert out["tunnels"] == 0 and out["other_plugs"] >= 1
-
-
-def test_the_warning_names_the_places_in_lps():
-    class Grid:  # the working grid: x-y-z mm -> LPS mm, a shift
-        def grid_to_physical(self, p):
-            return np.asarray(p, float) + [100.0, 200.0, 300.0]
-
-    holes = {"tunnels": 2, "plugs": [
-        {"voxels": 40, "centre": [1.0, 2.0, 3.0], "hu_median": 305.0, "contrast_hu": 120.0},
-        {"voxels": 9, "centre": [5.0, 5.0, 5.0], "hu_median": 210.0, "contrast_hu": 80.0}]}
-    (text,) = pipeline._plate_hole_warning("hip", holes, Grid(), np.array([10.0, 20.0, 30.0]))
-    assert text.startswith("hip: 2 tunnels of the surface go through a thin plate")
-    assert "LPS (111, 222, 333) (305 HU)" in text and "LPS (115, 225, 335) (210 HU)" in text
-    assert pipeline._plate_hole_warning("hip", {"tunnels": 0, "plugs": []}, Grid(),
-                                        np.zeros(3)) == []
 
 
 def test_a_plug_mask_becomes_an_occupancy_on_m0s_grid():

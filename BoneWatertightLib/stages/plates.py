@@ -359,7 +359,7 @@ HOLE_REACH_MM = 8.0
 
 
 def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
-                        native_spacing, soft: float, max_contrast: float,
+                        native_spacing, soft: float, cortex: float, max_contrast: float,
                         exclude: np.ndarray, surface_genus: int,
                         reach_mm: float = HOLE_REACH_MM, noise: float = None) -> dict:
     """Tunnels of a surface through which the CT shows a thin plate, and their plugs.
@@ -376,8 +376,9 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
        is a plug. (A closing would not do: a ball closes a hole of radius r in a plate t thick
        only when larger than about r^2 / t.)
     2. A plug is a plate's when, across it (:func:`_across`), its median peak stands at least
-       the contrast above the soft tissue and above the lower sides, it touches no
-       ``exclude`` voxel, and the hole is wider than the CT's blur in its plane (its deepest
+       the contrast above the soft tissue and above the lower sides, holds bone at least
+       PLATE_MIN_MM of cortex thick (less is soft tissue's texture, as for :func:`find_plates`),
+       touches no ``exclude`` voxel, and the hole is wider than the CT's blur in its plane (its deepest
        voxel PLATE_WINDOW x that resolution from the surface: a narrower hole reads bright
        in the middle whether or not a plate spans it).
     3. Each plate's plug, largest first, is confirmed on the whole box: kept when the voxels
@@ -397,6 +398,8 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
         The CT's own spacing (x, y, z) in mm, in the working grid's axes.
     soft : float
         Soft-tissue level (HU).
+    cortex : float
+        Full cortical level (HU) of the bone: a plate holds at least PLATE_MIN_MM of it.
     max_contrast : float
         The contrast a plate needs is PLATE_NOISE_FACTOR x the noise of the smoothed CT in the
         box's soft tissue, but never more than this (HU).
@@ -415,7 +418,8 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
     dict
         ``tunnels``: how many of the surface's tunnels go through a plate (0 when none);
         ``plugs``: their plugs, largest first - ``voxels``, ``centre`` (x, y, z mm of the
-        box), ``hu_median`` (the CT on it), ``contrast_hu`` (its median peak over its sides);
+        box), ``hu_median`` (the CT on it), ``contrast_hu`` (its median peak over its sides),
+        ``thickness_mm`` (the bone it holds, as cortex);
         ``other_plugs``: plugs of tunnels that are not a plate's; ``mask``: the plates' plugs,
         (z, y, x) bool like ``inside`` (only when there are some); ``min_contrast_hu``,
         ``noise_hu``.
@@ -446,14 +450,15 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
     found, masks = [], []
     for plug in _tunnel_plugs(inside, crest, depth <= 1.75 * d):
         idx = np.argwhere(plug)
-        peak, contrast, plane = _across(sm, idx, d, native)
+        peak, contrast, thickness, plane = _across(sm, idx, d, native, cortex)
         wide = float(depth[plug].max()) >= PLATE_WINDOW * plane
-        if wide and peak - soft >= min_contrast and contrast >= min_contrast:
+        if wide and peak - soft >= min_contrast and contrast >= min_contrast \
+                and thickness >= PLATE_MIN_MM:
             masks.append(plug)
             found.append({"voxels": int(len(idx)),
                           "centre": [float(c) for c in idx.mean(axis=0)[::-1] * d],
                           "hu_median": float(np.median(np.asarray(ct)[plug])),
-                          "contrast_hu": float(contrast)})
+                          "contrast_hu": float(contrast), "thickness_mm": float(thickness)})
         else:
             out["other_plugs"] += 1
     if not found:
@@ -479,14 +484,16 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
     return out
 
 
-def _across(sm: np.ndarray, idx: np.ndarray, d: float, native: np.ndarray) -> tuple:
-    """(median peak, median contrast, resolution in its plane) of the smoothed CT ``sm``
-    across a plug of voxels idx (k, 3) (z, y, x): along the plug's thinnest direction (its
-    voxels' least principal axis; for a plug of fewer than four voxels, the Hessian's most
-    negative direction at each), the peak within one voxel of each and its height over the mean
-    of the lowest values on either side within PLATE_WINDOW x the CT's resolution along that
-    direction; the CT's resolution across the plug's plane (mm, the root mean square over its
-    directions)."""
+def _across(sm: np.ndarray, idx: np.ndarray, d: float, native: np.ndarray,
+            cortex: float) -> tuple:
+    """(peak, contrast, thickness, resolution in its plane) across a plug of voxels idx (k, 3)
+    (z, y, x) of the smoothed CT ``sm``: along the plug's thinnest direction (its voxels'
+    least principal axis; for a plug of fewer than four voxels, the Hessian's most negative
+    direction at each), the peak within one voxel of each voxel, its height over the mean of
+    the lowest values on either side within PLATE_WINDOW x the CT's resolution along that
+    direction, and the bone it holds as a thickness of ``cortex`` (the blurred-slab model, as
+    :func:`_ridges`) - medians over the plug's voxels; and the CT's resolution across the
+    plug's plane (mm, the root mean square over its directions)."""
     pts = idx.astype(np.float64)
     if len(idx) >= 4:
         centred = pts - pts.mean(axis=0)
@@ -495,7 +502,7 @@ def _across(sm: np.ndarray, idx: np.ndarray, d: float, native: np.ndarray) -> tu
     else:
         inner = np.all((idx > 0) & (idx < np.array(sm.shape) - 1), axis=1)
         if not inner.any():
-            return -np.inf, -np.inf, float(native.max())
+            return -np.inf, -np.inf, 0.0, float(native.max())
         idx, pts = idx[inner], pts[inner]
         normals = _hessian_ridge(sm, idx, d)[1][:, ::-1]            # x-y-z -> z, y, x
     n2 = normals[:, ::-1] ** 2                                         # x, y, z
@@ -503,15 +510,22 @@ def _across(sm: np.ndarray, idx: np.ndarray, d: float, native: np.ndarray) -> tu
     plane = float(np.median(np.sqrt(((1.0 - n2) * native[None, :] ** 2).sum(axis=1) / 2.0)))
     # (at least two voxels: the sides lie beyond the peak's voxel)
     window = max(PLATE_WINDOW * res, 2.0 * d)
-    t = np.arange(-window, window + 1e-9, 0.5 * d)
+    step = 0.5 * d
+    t = np.arange(-window, window + 1e-9, step)
     samples = pts[:, None, :] + (t[None, :, None] / d) * normals[:, None, :]
     prof = ndimage.map_coordinates(sm, samples.reshape(-1, 3).T, order=1,
                                    mode="nearest").reshape(len(pts), len(t))
     peak = prof[:, np.abs(t) <= d].max(axis=1)
-    sides = 0.5 * (prof[:, t < -d].min(axis=1, initial=np.inf)
-                   + prof[:, t > d].min(axis=1, initial=np.inf))
-    return float(np.median(peak)), float(np.median(peak - sides)), plane
-
+    rows = np.arange(len(pts))
+    il = np.argmin(np.where(t[None, :] < -d, prof, np.inf), axis=1)
+    ir = np.argmin(np.where(t[None, :] > d, prof, np.inf), axis=1)
+    bg = 0.5 * (prof[rows, il] + prof[rows, ir])
+    cols = np.arange(len(t))[None, :]
+    between = (cols >= il[:, None]) & (cols <= ir[:, None])
+    mass = np.sum(np.where(between, np.clip(prof - bg[:, None], 0.0, None), 0.0), axis=1) * step
+    thickness = mass / np.maximum(cortex - bg, 1.0)
+    return (float(np.median(peak)), float(np.median(peak - bg)), float(np.median(thickness)),
+            plane)
 
 
 def _tunnel_plugs(occupancy: np.ndarray, adds: np.ndarray, near: np.ndarray) -> list:
