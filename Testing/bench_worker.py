@@ -70,28 +70,12 @@ def _status_mb(key: str) -> float:
     return float("nan")
 
 
-def _proc_status_mb(pid, keys=("VmRSS", "VmHWM")) -> tuple:
-    """(VmRSS, VmHWM) of process pid in MB (NaN where absent)."""
-    vals = dict.fromkeys(keys, float("nan"))
-    try:
-        with open(f"/proc/{pid}/status") as fh:
-            for line in fh:
-                key = line.split(":", 1)[0]
-                if key in vals:
-                    vals[key] = float(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return tuple(vals[k] for k in keys)
-
-
-def _reset_peak(pid) -> bool:
-    """Reset VmHWM of process pid to its VmRSS now (Linux >= 4.0); False where refused."""
-    try:
-        with open(f"/proc/{pid}/clear_refs", "w") as fh:
-            fh.write("5")
-        return True
-    except OSError:
-        return False
+def _vm_mb(text: bytes, key: bytes) -> float:
+    """The value (MB) of a ``Key:  N kB`` line of /proc/PID/status text; NaN where absent."""
+    i = text.find(key)
+    if i < 0:
+        return float("nan")
+    return float(text[i + len(key) + 1:text.index(b"kB", i)]) / 1024.0
 
 
 def sample_memory(pid: int, period: float, stdin=None, stdout=None) -> None:
@@ -100,24 +84,42 @@ def sample_memory(pid: int, period: float, stdin=None, stdout=None) -> None:
 
     Sample i: CLOCK_MONOTONIC seconds, VmRSS then and the peak since sample i - 1 (VmHWM read,
     then reset; with ``exact`` False, where the reset is refused, only the RSS is sampled and
-    the peak is the larger RSS of the interval's two ends)."""
+    the peak is the larger RSS of the interval's two ends). The /proc files stay open (one
+    read and one write per sample)."""
     import select
 
     stdin = stdin or sys.stdin
     stdout = stdout or sys.stdout.buffer
     clock = time.CLOCK_MONOTONIC
-    _, before = _proc_status_mb(pid)
-    exact = _reset_peak(pid)
-    t, rss, peak = [time.clock_gettime(clock)], [_proc_status_mb(pid)[0]], [float("nan")]
+    status = os.open(f"/proc/{pid}/status", os.O_RDONLY)
+    try:
+        clear = os.open(f"/proc/{pid}/clear_refs", os.O_WRONLY)
+    except OSError:
+        clear = None
+
+    def read():
+        text = os.pread(status, 8192, 0)
+        return _vm_mb(text, b"VmRSS:"), _vm_mb(text, b"VmHWM:")
+
+    def reset():
+        try:
+            os.write(clear, b"5")
+            return True
+        except OSError:
+            return False
+
+    _, before = read()
+    exact = clear is not None and reset()
+    t, rss, peak = [time.clock_gettime(clock)], [read()[0]], [float("nan")]
     stdout.write(f"ready {before!r} {int(exact)}\n".encode())
     stdout.flush()
     done = False
     while not done:
         done = bool(select.select([stdin], [], [], period)[0])
         now = time.clock_gettime(clock)
-        r, h = _proc_status_mb(pid)
+        r, h = read()
         if exact:
-            _reset_peak(pid)
+            reset()
         else:
             h = max(r, rss[-1])
         t.append(now)
