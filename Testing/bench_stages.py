@@ -150,7 +150,8 @@ def stage_table(row: dict, title: str) -> str:
               + "); wall s = time at least one bone was in it; peak MB = the process's largest resident "
               "memory while the stage ran (a sample interval overlapping any of its spans"
               + ("; bones on threads: a peak counts for every stage active at the time" if several else "")
-              + "); end MB = resident memory at the end of its last span. RSS at the run's start "
+              + "); end MB = resident memory at the end of its last span; a stage shorter than a few "
+              "sample periods carries the peak of the few ms around it. RSS at the run's start "
               f"{fmt(st.get('rss_at_start_mb'), 0)} MB."]
     sl = row.get("slicer_default") or {}
     if sl:

@@ -747,7 +747,7 @@ def run_profile(args):
     data = args.data or "/work/shared/data"
     if "L1-L5" in wanted:
         import bench_real
-        name, folder, labfile, targets, what = next(r for r in bench_real.RUNS if r[0] == "pelvis_L1-L5")
+        _, folder, labfile, targets, _ = next(r for r in bench_real.RUNS if r[0] == "pelvis_L1-L5")
         ct_r = os.path.join(data, folder, "ct.nrrd")
         lab_r = os.path.join(data, folder, labfile)
         if os.path.exists(ct_r) and os.path.exists(lab_r):
