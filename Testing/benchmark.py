@@ -742,7 +742,7 @@ def run_profile(args):
         cp["profile_tottime"] = res.get("profile_tottime")
         out["cprofile"] = cp
         if cp.get("profile_cumulative"):
-            with open(os.path.join(pdir, "cprofile.txt"), "w") as fh:
+            with open(os.path.join(pdir, "cprofile.txt"), "w", encoding="utf-8") as fh:
                 fh.write(cp["profile_cumulative"] + "\n\n" + cp["profile_tottime"])
     data = args.data or "/work/shared/data"
     if "L1-L5" in wanted:
@@ -782,7 +782,7 @@ def run_profile(args):
         texts.append(bench_stages.stage_table(row, row["title"]))
     text = "\n\n".join(texts)
     print(text, flush=True)
-    with open(os.path.join(pdir, "STAGES.md"), "w") as fh:
+    with open(os.path.join(pdir, "STAGES.md"), "w", encoding="utf-8") as fh:
         fh.write(text + "\n")
     if (out.get("cprofile") or {}).get("profile_cumulative"):
         print(_top_functions(out["cprofile"]["profile_cumulative"], 25), flush=True)
@@ -1160,7 +1160,7 @@ def write_report(results, args):
             if isinstance(r, dict) and r.get("joint_timings"):
                 L += [profile_table(real_profile_row(r), f"real CT run {nm} ({r['what']}; per-bone "
                                     "stages summed over its bones)"), ""]
-    with open(os.path.join(args.out_dir, "REPORT.md.tmp"), "w") as fh:
+    with open(os.path.join(args.out_dir, "REPORT.md.tmp"), "w", encoding="utf-8") as fh:
         fh.write("\n".join(L) + "\n")
     os.replace(os.path.join(args.out_dir, "REPORT.md.tmp"), os.path.join(args.out_dir, "REPORT.md"))
 

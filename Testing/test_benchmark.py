@@ -31,13 +31,13 @@ def test_harness_runs_and_reports(tmp_path):
     rc = benchmark.main(["--cases", "tiny", "--out", str(out), "--samples", "2000",
                          "--methods", "threshold_mc", "--timeout", "300"])
     assert rc == 0
-    text = (out / "REPORT.md").read_text()
+    text = (out / "REPORT.md").read_text(encoding="utf-8")
     assert "## 1. Phantoms, single bone" in text and "### `tiny`" in text
     # Several components: the threshold surface fails the checks, and the report says so.
     line = next(ln for ln in text.splitlines() if ln.startswith("| threshold + MC + smoothing |"))
     assert "**fail**" in line and "connected components" in line
     assert (out / "tiny" / "cdf.png").exists() and (out / "tiny" / "sections.png").exists()
-    res = json.loads((out / "results.json").read_text())
+    res = json.loads((out / "results.json").read_text(encoding="utf-8"))
     row = res["phantoms"]["tiny"]["rows"][0]
     assert row["method"] == "threshold_mc" and row["ok"]
     assert row["seconds"] > 0 and row["peak_rss_mb"] > row["base_rss_mb"] > 0
@@ -50,7 +50,7 @@ def test_real_part_skips_without_data(tmp_path):
     rc = benchmark.main(["--cases", "none", "--real", "--data", str(tmp_path / "absent"),
                          "--out", str(out)])
     assert rc == 0
-    assert "no real CT" in (out / "REPORT.md").read_text()
+    assert "no real CT" in (out / "REPORT.md").read_text(encoding="utf-8")
 
 
 def test_worker_reports_a_failure_as_a_result(tmp_path):
@@ -128,7 +128,7 @@ def test_profile_prints_per_stage_time_and_memory_beside_slicer(tmp_path):
     out = tmp_path / "bench"
     rc = benchmark.main(["--cases", "none", "--profile", "--quick", "--out", str(out), "--timeout", "300"])
     assert rc == 0
-    res = json.loads((out / "results.json").read_text())
+    res = json.loads((out / "results.json").read_text(encoding="utf-8"))
     row = res["profile"]["runs"]["tiny"]
     assert row["ok"] and row["bones_ok"] == 1
     st = row["stage_table"]
@@ -150,8 +150,8 @@ def test_profile_prints_per_stage_time_and_memory_beside_slicer(tmp_path):
     assert row["slicer_default"]["ok"] and row["cli"]["exit_code"] == 0
     assert row["ratio_call_to_slicer"] == pytest.approx(row["seconds"] / row["slicer_default"]["seconds"])
     assert row["ratio_cli_to_slicer"] > row["ratio_call_to_slicer"] > 1
-    text = (out / "profile" / "STAGES.md").read_text()
+    text = (out / "profile" / "STAGES.md").read_text(encoding="utf-8")
     assert "| stage | s | % of total | wall s | peak MB | end MB |" in text
     assert all(f"| {k} |" in text for k in timed) and "| **total** |" in text
     assert "call / Slicer = **" in text and "CLI / Slicer = **" in text
-    assert "## 5. Profile" in (out / "REPORT.md").read_text()
+    assert "## 5. Profile" in (out / "REPORT.md").read_text(encoding="utf-8")
