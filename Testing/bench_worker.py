@@ -39,9 +39,9 @@ never wait for the GIL that a long C call of the pipeline holds): every MEMORY_P
 VmRSS and VmHWM of /proc/PID/status and resets VmHWM (``echo 5 > /proc/PID/clear_refs``), so
 each sample holds the exact peak resident memory since the previous one, short spikes included.
 The result's ``stage_memory`` holds the samples in seconds from the start of the pipeline's run
-(the zero of report.timings.total and of report.stage_spans: the end of the call minus
-timings.total; the pipeline does nothing timed-relevant after its total is taken), for
-benchmark.stage_memory. ``peak_rss_mb`` is then the largest of VmHWM before the call and every
+(the zero of report.timings.total and of report.stage_spans, placed at the end of the call
+minus timings.total: after taking its total the pipeline only builds its report), for
+bench_stages.stage_memory. ``peak_rss_mb`` is then the largest of VmHWM before the call and every
 sample's peak (VmHWM itself was reset).
 """
 
