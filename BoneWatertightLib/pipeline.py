@@ -219,13 +219,29 @@ def _select_neighbours(labels: np.ndarray, values: list, targets: list, neighbou
 
 
 @contextlib.contextmanager
-def timed(times: StageTimes, stage: str):
-    """Add the seconds the block takes to ``times.<stage>`` (the one stage clock)."""
+def timed(times: StageTimes, stage: str, spans: Optional[list] = None, k: Optional[int] = None):
+    """Add the seconds the block takes to ``times.<stage>`` (the one stage clock).
+
+    Parameters
+    ----------
+    times : StageTimes
+        The run's (shared stages) or a bone's stage times.
+    stage : str
+        A field of :class:`StageTimes`.
+    spans : list, optional
+        When given, ``(stage, k, start, end)`` (``time.perf_counter`` seconds) is appended to
+        it once the block ends (see :func:`_stage_spans`).
+    k : int, optional
+        The bone's label index on the working grid (None: a stage the bones share).
+    """
     t0 = time.perf_counter()
     try:
         yield
     finally:
-        setattr(times, stage, getattr(times, stage) + time.perf_counter() - t0)
+        t1 = time.perf_counter()
+        setattr(times, stage, getattr(times, stage) + t1 - t0)
+        if spans is not None:
+            spans.append((stage, k, t0, t1))  # one append: safe from the bones' threads
 
 
 @dataclass
@@ -325,6 +341,7 @@ class _Run:
     threads: int = 1
     costs: dict = field(default_factory=dict)   # bone k -> bytes it may need (bone_schedule)
     budget: float = float("inf")                # bytes the bones at once may need
+    spans: list = field(default_factory=list)   # (stage, k or None, start, end): see timed
 
     def stage(self, name: str) -> Progress:
         return _stage(self.progress, name)
@@ -498,7 +515,7 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     t_all = time.perf_counter()
     run = _Run((params or Parameters()).validate(), Progress(progress), keep_going)
     run.stage("open3d")
-    with timed(run.times, "import_open3d"):
+    with timed(run.times, "import_open3d", run.spans):
         import_open3d()  # first: a missing dependency fails before minutes of work
     ws = prepare_stage(run, ct, labels, targets, neighbours, dict(names or {}))
     filter_stage(run, ws)
@@ -519,14 +536,16 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
                for k in ws.targets]
     pairs = pair_stage(ws, results, keep_going=run.keep_going, min_gap=run.params.min_gap)
     run.times.total = time.perf_counter() - t_all
+    spans = _stage_spans(run.spans, t_all, ws)
     for r in results:
         if r.ok:
             _shared_times(r.report.timings, run.times)
+            r.report.stage_spans = [s for s in spans if s["label"] in (None, r.label)]
     report = JointReport(
         version=__version__, parameters=run.params.to_dict(), input=ws.prep.info,
         thresholds=ws.thresholds, ownership=_ownership_info(ws), pairs=pairs,
         timings=run.times, neighbours=[str(ws.names.get(v, v)) for v in ws.neighbour_values],
-        fallbacks=list(run.fallbacks))
+        fallbacks=list(run.fallbacks), stage_spans=spans)
     run.progress(1.0, "done")
     return JointResult(bones=results, pairs=pairs, report=report)
 
@@ -538,7 +557,7 @@ def prepare_stage(run: _Run, ct, labels, targets, neighbours, names: dict) -> Wo
     """Validate, crop and resample (stages.prepare), check the sizes, choose the neighbours."""
     params = run.params
     sub = run.stage("prepare")
-    with timed(run.times, "prepare"):
+    with timed(run.times, "prepare", run.spans):
         band_guess = max(params.segment_dilation, 3.0)
         prep = prepare_labels(ct, labels, targets, spacing=params.spacing, margin=params.margin,
                               band_mm=band_guess, max_memory_gb=params.max_memory_gb,
@@ -563,7 +582,7 @@ def filter_stage(run: _Run, ws: Workspace) -> None:
     """The hybrid filter (paper §2.1), its percentile taken near the targets."""
     params = run.params
     run.stage("filter")
-    with timed(run.times, "filter"):
+    with timed(run.times, "filter", run.spans):
         d = ws.d
         near = ndimage.binary_dilation(np.isin(ws.labels, ws.targets),
                                        iterations=max(1, int(round(FILTER_REGION_MM / d))))
@@ -608,7 +627,7 @@ def ownership_stage(run: _Run, ws: Workspace) -> None:
     """Which voxels belong to which bone (stages.ownership)."""
     params = run.params
     sub = run.stage("ownership")
-    with timed(run.times, "ownership"):
+    with timed(run.times, "ownership", run.spans):
         th = ws.thresholds
         ws.own = compute_ownership(
             ws.ct_f, ws.labels, len(ws.prep.values), ws.d, h0=ws.h0, ht=ws.ht,
@@ -655,10 +674,10 @@ def initial_surface_stage(run: _Run, ws: Workspace, k: int, progress: Progress) 
     bone = BoneWork(k=k, name=ws.name_of(k))
     threshold_windows(run, ws, bone)
     progress(0.2, f"{bone.name}: visible points")
-    with timed(bone.times, "visible"):
+    with timed(bone.times, "visible", run.spans, k):
         local = visible_points_of(run, ws, bone, progress.stage(0.2, 0.5))
     progress(0.5, f"{bone.name}: Poisson surface M0")
-    with timed(bone.times, "poisson"):
+    with timed(bone.times, "poisson", run.spans, k):
         poisson_m0(run, ws, bone, local)
     progress(1.0, f"{bone.name}: M0 done")
     bone.others_distance = _others_distance(ws, bone)
@@ -685,7 +704,7 @@ def threshold_windows(run: _Run, ws: Workspace, bone: BoneWork) -> None:
             bone.fallbacks.add("ownership", f"{what} was taken in as this bone's "
                                f"({sum(m['ml'] for m in taken):.2f} ml; {why})", len(taken),
                                "pieces")
-    with timed(bone.times, "threshold"):
+    with timed(bone.times, "threshold", run.spans, bone.k):
         bone.masks = bone_masks(ws.ct_f, own.owner, own.cores, ws.labels, bone.k, d, h0=ws.h0,
                                 theta_max=params.theta_max, coarseness=ws.prep.coarseness,
                                 opening=params.opening, closing=params.closing,
@@ -998,7 +1017,7 @@ def _others_distance(ws: Workspace, bone: BoneWork) -> Optional[np.ndarray]:
 def territory_stage(run: _Run, ws: Workspace, bones: dict) -> None:
     """The midway surfaces between bones, from the M0s (stages.contacts.territories)."""
     run.stage("territories")
-    with timed(run.times, "territories"):
+    with timed(run.times, "territories", run.spans):
         ws.fixed = _fixed_masks(ws.own, ws.labels, ws.targets, len(ws.prep.values))
         if len(bones) > 1 or ws.fixed:
             ws.territories = _contacts.territories(
@@ -1037,7 +1056,7 @@ def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
 
     def shape(k, part):
         bone = bones[k]
-        with timed(bone.times, "deform"):
+        with timed(bone.times, "deform", run.spans, k):
             deform(run, ws, bone, allowed_of(k), part.stage(0.0, 0.9 if several else 0.6))
             if several:
                 # The contrast this bone's cortex shows, for the run's shared reference.
@@ -1048,7 +1067,7 @@ def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
                     bone.vertices, bone.faces, ws.ct_smooth, ws.ct_smooth_d, ws.ht,
                     profiles=bone.profiles, peak_max=params.theta_max)
         if params.refine_edges and not several:
-            with timed(bone.times, "refine"):
+            with timed(bone.times, "refine", run.spans, k):
                 refine(run, ws, bone, allowed_of(k), part.stage(0.6, 1.0))
 
     # Several bones: all are deformed first, so that each is refined against the full
@@ -1063,7 +1082,7 @@ def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
             ws.shared_reference = float(refs[ws.shared_reference_from])
 
         def edges(k, part):
-            with timed(bones[k].times, "refine"):
+            with timed(bones[k].times, "refine", run.spans, k):
                 refine(run, ws, bones[k], allowed_of(k), part)
 
         run.each([k for k in ws.targets if k in bones and k not in run.failed],
@@ -1160,7 +1179,7 @@ def contact_stage(run: _Run, ws: Workspace, bones: dict) -> None:
     the exact test; pairs that still cross get passes with a wider margin, then the exact
     push-apart (stages.contacts)."""
     sub = run.stage("contacts")
-    with timed(run.times, "contacts"):
+    with timed(run.times, "contacts", run.spans):
         terr = ws.territories
         if not (terr and any(v is not None for v in terr.values())):
             return
@@ -1288,14 +1307,14 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
     """Caps at the image boundary, the checks (SPEC §4), plausibility, the report."""
     name, grid = bone.name, ws.prep.grid
     planes = ws.prep.caps.get(bone.k, [])
-    with timed(bone.times, "cap"):
+    with timed(bone.times, "cap", run.spans, bone.k):
         verts, faces, flags, cap_area = cap_bone(bone.vertices, bone.faces, planes,
                                                  bone.fallbacks)
         if planes:
             verts, faces, flags = drop_cap_slivers(verts, faces, flags, ws.d ** 3,
                                                    bone.fallbacks)
     progress(0.3, f"{name}: checks")
-    with timed(bone.times, "checks"):
+    with timed(bone.times, "checks", run.spans, bone.k):
         phys = grid.grid_to_physical(verts)
         if enclosed_volume(phys, faces) < 0:  # a reflecting direction matrix flips orientation
             faces = faces[:, ::-1].copy()
@@ -1303,7 +1322,7 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
     _raise_failed_checks(checks, phys, faces, planes, name)
     progress(0.6, f"{name}: plausibility")
     _release_between_steps(ws)  # its distance maps come on top of what the checks freed
-    with timed(bone.times, "plausibility"):
+    with timed(bone.times, "plausibility", run.spans, bone.k):
         evidence, confidence, summary = evidence_of(run, ws, bone, verts, faces, flags)
         plaus, box, segment = plausibility_of(run, ws, bone, verts, faces, phys, planes,
                                               edges=verts[evidence == _evidence.EDGE])
@@ -1619,6 +1638,33 @@ def _shared_times(times: StageTimes, shared: StageTimes) -> None:
     for stage in ("import_open3d", "prepare", "filter", "ownership", "territories", "contacts",
                   "total"):
         setattr(times, stage, getattr(shared, stage))
+
+
+def _stage_spans(records: list, origin: float, ws: Workspace) -> list:
+    """When each timed stage ran, for the reports' ``stage_spans``.
+
+    Parameters
+    ----------
+    records : list
+        ``(stage, k, start, end)`` as :func:`timed` appended them (k: label index on the
+        working grid, None for a stage the bones share; ``time.perf_counter`` seconds).
+    origin : float
+        ``time.perf_counter()`` at the start of the run (the zero of ``timings.total``).
+    ws : Workspace
+        Names and label values of the label indices.
+
+    Returns
+    -------
+    list of dict
+        ``{"stage", "bone", "label", "start_s", "end_s"}`` in order of start, seconds from the
+        start of the run; ``bone`` / ``label`` None for a shared stage. The durations of a
+        stage's spans of one bone (or the shared ones) add up to its ``timings`` entry.
+    """
+    out = [{"stage": stage, "bone": None if k is None else ws.name_of(k),
+            "label": None if k is None else ws.value_of(k),
+            "start_s": start - origin, "end_s": end - origin}
+           for stage, k, start, end in records]
+    return sorted(out, key=lambda s: (s["start_s"], s["end_s"]))
 
 
 def _ownership_info(ws: Workspace) -> dict:

@@ -190,6 +190,9 @@ class PipelineReport:
     # Per evidence class (stages.evidence): area and fraction of the surface, mean confidence
     evidence: dict = field(default_factory=dict)
     fallbacks: list = field(default_factory=list)  # Fallback records, the run's shared ones first
+    # When the timed stages of this bone and the shared ones ran: {"stage", "bone", "label",
+    # "start_s", "end_s"}, seconds from the start of the run (bone and label None: shared).
+    stage_spans: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return to_plain(self)
@@ -236,6 +239,8 @@ class JointReport:
     coordinate_system: str = "LPS"
     units: str = "mm"
     fallbacks: list = field(default_factory=list)  # the shared stages' Fallback records
+    # When every timed stage of the run ran, the bones' included (see PipelineReport)
+    stage_spans: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return to_plain(self)

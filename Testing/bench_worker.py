@@ -32,6 +32,17 @@ Task kinds (keys besides ``kind``):
 - ``cli``: ``argv``, ``log`` -> BoneWatertightLib.app.cli.main(argv), stdout/stderr to ``log``.
 
 ``cprofile: true`` runs the call under cProfile and returns the top functions.
+
+``stage_memory: true`` (kinds ``reconstruct`` and ``many``, Linux) samples the process's memory
+during the call from a second process (``bench_worker.py --sample PID PERIOD``, so the samples
+never wait for the GIL that a long C call of the pipeline holds): every MEMORY_PERIOD_S it reads
+VmRSS and VmHWM of /proc/PID/status and resets VmHWM (``echo 5 > /proc/PID/clear_refs``), so
+each sample holds the exact peak resident memory since the previous one, short spikes included.
+The result's ``stage_memory`` holds the samples in seconds from the start of the pipeline's run
+(the zero of report.timings.total and of report.stage_spans, placed at the end of the call
+minus timings.total: after taking its total the pipeline only builds its report), for
+bench_stages.stage_memory. ``peak_rss_mb`` is then the largest of VmHWM before the call and every
+sample's peak (VmHWM itself was reset).
 """
 
 from __future__ import annotations
@@ -44,6 +55,8 @@ import traceback
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
+# Seconds between two memory samples of a ``stage_memory`` task.
+MEMORY_PERIOD_S = 0.005
 
 
 def _status_mb(key: str) -> float:
@@ -55,6 +68,95 @@ def _status_mb(key: str) -> float:
     except OSError:
         pass
     return float("nan")
+
+
+def _vm_mb(text: bytes, key: bytes) -> float:
+    """The value (MB) of a ``Key:  N kB`` line of /proc/PID/status text; NaN where absent."""
+    i = text.find(key)
+    if i < 0:
+        return float("nan")
+    return float(text[i + len(key) + 1:text.index(b"kB", i)]) / 1024.0
+
+
+def sample_memory(pid: int, period: float, stdin=None, stdout=None) -> None:
+    """The sampler process's loop: one line ``ready <VmHWM before> <exact>`` once VmHWM was
+    reset, then a sample every ``period`` s until stdin closes, then the samples (pickle).
+
+    Sample i: CLOCK_MONOTONIC seconds, VmRSS then and the peak since sample i - 1 (VmHWM read,
+    then reset; with ``exact`` False, where the reset is refused, only the RSS is sampled and
+    the peak is the larger RSS of the interval's two ends). The /proc files stay open (one
+    read and one write per sample)."""
+    import select
+
+    stdin = stdin or sys.stdin
+    stdout = stdout or sys.stdout.buffer
+    clock = time.CLOCK_MONOTONIC
+    status = os.open(f"/proc/{pid}/status", os.O_RDONLY)
+    try:
+        clear = os.open(f"/proc/{pid}/clear_refs", os.O_WRONLY)
+    except OSError:
+        clear = None
+
+    def read():
+        text = os.pread(status, 8192, 0)
+        return _vm_mb(text, b"VmRSS:"), _vm_mb(text, b"VmHWM:")
+
+    def reset():
+        try:
+            os.write(clear, b"5")
+            return True
+        except OSError:
+            return False
+
+    _, before = read()
+    exact = clear is not None and reset()
+    t, rss, peak = [time.clock_gettime(clock)], [read()[0]], [float("nan")]
+    stdout.write(f"ready {before!r} {int(exact)}\n".encode())
+    stdout.flush()
+    done = False
+    while not done:
+        done = bool(select.select([stdin], [], [], period)[0])
+        now = time.clock_gettime(clock)
+        r, h = read()
+        if exact:
+            reset()
+        else:
+            h = max(r, rss[-1])
+        t.append(now)
+        rss.append(r)
+        peak.append(h)
+    pickle.dump({"t": t, "rss_mb": rss, "peak_mb": peak, "exact": exact, "period_s": period},
+                stdout, protocol=pickle.HIGHEST_PROTOCOL)
+    stdout.flush()
+
+
+class MemorySampler:
+    """The sampler process of :func:`sample_memory`, watching this process."""
+
+    def __init__(self, period: float = MEMORY_PERIOD_S):
+        self.period = period
+        self.proc = None
+        self.before_mb = float("nan")
+        self.exact = False
+
+    def start(self) -> "MemorySampler":
+        import subprocess
+
+        self.proc = subprocess.Popen(
+            [sys.executable, os.path.abspath(__file__), "--sample", str(os.getpid()),
+             repr(self.period)], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        word, before, exact = self.proc.stdout.readline().decode().split()
+        if word != "ready":
+            raise RuntimeError(f"memory sampler: {word} {before}")
+        self.before_mb, self.exact = float(before), exact == "1"
+        return self
+
+    def stop(self) -> dict:
+        self.proc.stdin.close()  # the sampler takes one last sample and answers
+        data = pickle.loads(self.proc.stdout.read())
+        self.proc.wait()
+        data["before_mb"] = self.before_mb
+        return data
 
 
 def _surface_out(surface, name="", label=0):
@@ -153,6 +255,7 @@ def _call(task):
                 bones.append(b)
             return {"bones": bones, "pairs": [to_plain(p) for p in res.pairs],
                     "joint": {"timings": to_plain(res.report.timings),
+                              "stage_spans": to_plain(res.report.stage_spans),
                               "thresholds": to_plain(res.report.thresholds),
                               "neighbours": to_plain(res.report.neighbours),
                               "input": to_plain(res.report.input)}}
@@ -188,9 +291,14 @@ def run_task(task: dict) -> dict:
             sys.path.insert(0, p)
     out = {"kind": task["kind"], "ok": False}
     t_cli = time.perf_counter()
+    sampler = None
     try:
         fn, conv = _call(task)
         out["base_rss_mb"] = _status_mb("VmRSS")
+        if task.get("stage_memory"):
+            if task["kind"] not in ("reconstruct", "many"):
+                raise ValueError("stage_memory: only for kinds reconstruct and many")
+            sampler = MemorySampler().start()
         prof = None
         if task.get("cprofile"):
             import cProfile
@@ -198,7 +306,13 @@ def run_task(task: dict) -> dict:
             prof.enable()
         t0 = t_cli if task["kind"] == "cli" else time.perf_counter()
         value = fn()
-        out["seconds"] = time.perf_counter() - t0
+        t_end = time.perf_counter()
+        out["seconds"] = t_end - t0
+        if sampler is not None:
+            # the call's end on the sampler's clock
+            end_mono = time.clock_gettime(time.CLOCK_MONOTONIC) - (time.perf_counter() - t_end)
+            mem = sampler.stop()
+            sampler = None
         if prof is not None:
             prof.disable()
             import io
@@ -212,13 +326,31 @@ def run_task(task: dict) -> dict:
             out["profile_tottime"] = s2.getvalue()
         out["peak_rss_mb"] = _status_mb("VmHWM")
         out.update(conv(value))
+        if task.get("stage_memory"):
+            out["stage_memory"] = _aligned(mem, end_mono, out)
+            out["peak_rss_mb"] = max(out["peak_rss_mb"], mem["before_mb"],
+                                     max(p for p in mem["peak_mb"][1:]))
         out["ok"] = True
     except BaseException as exc:  # noqa: BLE001 - a failed method is a result
         out["error"] = f"{type(exc).__name__}: {exc}"
         out["error_type"] = type(exc).__name__
         out["traceback"] = traceback.format_exc(limit=8)
         out["peak_rss_mb"] = _status_mb("VmHWM")
+        if sampler is not None:
+            sampler.stop()
     return out
+
+
+def _aligned(mem: dict, end_mono: float, out: dict) -> dict:
+    """The samples in seconds from the start of the pipeline's run, with its stage spans."""
+    joint = out.get("joint")
+    rep = joint if joint is not None else out["bones"][0]["report"]
+    total = rep["timings"]["total"]
+    origin = end_mono - total
+    return {"t_s": [t - origin for t in mem["t"]], "rss_mb": mem["rss_mb"],
+            "peak_mb": mem["peak_mb"], "exact": mem["exact"], "period_s": mem["period_s"],
+            "before_mb": mem["before_mb"], "total_s": total,
+            "spans": list(rep.get("stage_spans") or [])}
 
 
 def run_isolated(task: dict, timeout: float, workdir: str) -> dict:
@@ -264,6 +396,9 @@ def _unlink(*paths):
 
 
 if __name__ == "__main__":
+    if sys.argv[1] == "--sample":
+        sample_memory(int(sys.argv[2]), float(sys.argv[3]))
+        sys.exit(0)
     with open(sys.argv[1], "rb") as fh:
         _task = pickle.load(fh)
     _res = run_task(_task)

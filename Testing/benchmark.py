@@ -3,7 +3,7 @@ alternatives, on phantoms with analytic truth and on real CT, with the targets o
 10, 11 and 14 stated beside the figures.
 
     python Testing/benchmark.py --out bench_out [--cases tiny,easy,...|none] [--real]
-                                [--scaling] [--profile] [--quick] [--resume]
+                                [--scaling] [--profile [--profile-runs ...]] [--quick] [--resume]
 
 Parts (each can be run alone: ``--cases none --real`` runs only the real CT):
 
@@ -21,8 +21,13 @@ Parts (each can be run alone: ``--cases none --real`` runs only the real CT):
    default spacing, the growth exponent in surface voxels, a pair of bones vs one, and the whole
    CLI run beside 3D Slicer's default closed surface (threshold + flying edges + windowed sinc
    on the CT's grid) on the same case.
-5. ``--profile``: per-stage times of one femur run at the defaults (report.timings) and the
-   functions that take the time inside the stages (cProfile, a second run).
+5. ``--profile`` (``--profile-runs phantom,L1-L5,chest_scapula``): per stage, time and memory
+   (peak and end resident MB, Testing/bench_stages.py) of the femur phantom at the defaults, with
+   3D Slicer's default closed surface and the whole CLI run on the same input in the same
+   invocation (their ratios printed beside the table), of the real 3 mm L1-L5 run and of the
+   chest phantom's left scapula at 0.7 x 0.7 x 2.5 mm (Testing/bench_chest.py builds it); the
+   functions that take the femur's time inside the stages (cProfile, a second run). The tables
+   are printed and written to ``<out>/profile/STAGES.md``.
 
 Every method runs in its own freshly started process (Testing/bench_worker.py): the wall time
 is measured around the call only (the CLI row: the whole command line run, imports included),
@@ -59,6 +64,7 @@ for _p in (ROOT, HERE):
 
 from bench_common import (check, fig_cdf, fig_sections, fmt, gate_text, inside_of, jsonable, md_table,  # noqa: E402
                           pair_measures, render_distance, short, truth_metrics, verdict)
+from bench_stages import STAGE_ORDER  # noqa: E402
 from bench_worker import run_isolated  # noqa: E402
 
 SINGLE_CASES = ["tiny", "easy", "femur", "hard", "lesion", "oblique", "osteo", "thin_cortex",
@@ -628,40 +634,159 @@ def run_scaling(args):
 
 # ---------------------------------------------------------------------------- part 5
 
+def _label_names(path):
+    """{value: name} of a labels.csv (value,name) beside a label map; {} without one."""
+    import csv
+
+    try:
+        with open(path) as fh:
+            return {int(r["value"]): r["name"] for r in csv.DictReader(fh)}
+    except (OSError, KeyError, ValueError):
+        return {}
+
+
+def _union_mask(lab_path, values, out_path):
+    """The union of some labels of a label map, as a 0/1 mask file (the Slicer-style baseline's
+    segment of a several-bone run)."""
+    import SimpleITK as sitk
+
+    lab = sitk.ReadImage(lab_path)
+    a = np.isin(sitk.GetArrayViewFromImage(lab), list(values)).astype(np.uint8)
+    img = sitk.GetImageFromArray(a)
+    img.CopyInformation(lab)
+    return write_image(img, out_path)
+
+
+def profile_run(name, title, task, args, slicer=None, cli=None):
+    """One profiled pipeline run (per-stage time and memory, stage_memory in the worker) and,
+    when given, 3D Slicer's default closed surface on ``slicer = (ct, mask, what)`` and the
+    whole command line ``cli = (ct, seg, label, out, report)`` in the same invocation."""
+    import bench_stages
+
+    load = _load()
+    log(f"[profile] {name}: pipeline (load {load}) ...")
+    res = run_isolated(dict(task, stage_memory=True), args.timeout, _workdir(args))
+    row = run_row(name, res)
+    row["load"] = load
+    if res.get("ok"):
+        bones = [b for b in res["bones"] if b.get("ok")]
+        rep = bones[0]["report"] if bones else {}
+        row["timings"] = (res.get("joint") or {}).get("timings") or rep.get("timings")
+        row["spacing_mm"] = (rep.get("input") or {}).get("resample_spacing_mm")
+        row["bone_threads"] = (rep.get("input") or {}).get("bone_threads")
+        row["faces"] = int(sum(len(b["faces"]) for b in bones))
+        row["bones_ok"] = len(bones)
+        row["bone_errors"] = [b.get("error") for b in res["bones"] if not b.get("ok")]
+        row["counts"] = rep.get("counts") if len(bones) == 1 else None
+        mem = res["stage_memory"]
+        row["stage_table"] = bench_stages.stage_memory(mem)
+        pdir = os.path.join(args.out_dir, "profile")
+        np.savez_compressed(os.path.join(pdir, f"{name}_memory.npz"), t_s=mem["t_s"], rss_mb=mem["rss_mb"],
+                            peak_mb=mem["peak_mb"], spans=json.dumps(mem["spans"]))
+        try:
+            bench_stages.figure(mem, os.path.join(pdir, f"{name}_memory.png"), f"{name}: memory and stages")
+            row["figure"] = f"profile/{name}_memory.png"
+        except Exception as exc:  # noqa: BLE001 - no picture is not a benchmark failure
+            row["figure_error"] = f"{type(exc).__name__}: {exc}"
+    log(f"[profile] {name}: {fmt(row.get('seconds'), 1)} s, peak {fmt(row.get('peak_rss_mb'), 0)} MB"
+        + ("" if row["ok"] else " FAILED " + short(row.get("error"), 200)))
+    if slicer is not None:
+        ct_path, mask_path, what = slicer
+        log(f"[profile] {name}: Slicer default closed surface ({what}) ...")
+        sl = _slicer_like(ct_path, mask_path, args)
+        row["slicer_default"] = run_row("slicer_default", sl)
+        row["slicer_default"]["all_seconds"] = sl.get("all_seconds")
+        row["slicer_what"] = what
+        cs, ss = row.get("seconds"), row["slicer_default"].get("seconds")
+        row["ratio_call_to_slicer"] = cs / ss if cs and ss and row["ok"] else None
+    if cli is not None:
+        log(f"[profile] {name}: the whole command line ...")
+        c = _cli_run(*cli, args, repeat=1)
+        row["cli"] = {"seconds": c.get("seconds"), "exit_code": c.get("exit_code"),
+                      "peak_rss_mb": c.get("peak_rss_mb"), "argv": c.get("argv")}
+        cs, ss = c.get("seconds"), (row.get("slicer_default") or {}).get("seconds")
+        row["ratio_cli_to_slicer"] = cs / ss if cs and ss and c.get("exit_code") == 0 else None
+    row["title"] = title
+    return row
+
+
 def run_profile(args):
+    """Part 5: per-stage time and memory of the femur phantom (with the Slicer-style baseline
+    and the whole CLI run beside it), of the real 3 mm L1-L5 run and of the chest phantom's
+    scapula at 0.7 x 0.7 x 2.5 mm; the femur's functions under cProfile (a second run)."""
+    import bench_stages
+
     case = args.profile_case
     ph, _ = get_phantom(case, args.seed, {}, args.cache_dir)
     pdir = os.path.join(args.out_dir, "profile")
     os.makedirs(pdir, exist_ok=True)
     ct_path = write_image(ph.ct, os.path.join(pdir, "ct.nrrd"))
     mask_path = write_image(ph.mask, os.path.join(pdir, "mask.nrrd"))
-    out = {"case": case}
-    for key, prof in (("plain", False), ("cprofile", True)):
-        log(f"[profile] {case} ({key}) ...")
+    out = {"case": case, "runs": {}}
+    texts = []
+    wanted = args.profile_runs
+    if "phantom" in wanted:
+        row = profile_run(case, f"{case} phantom at the defaults (reconstruct, one bone)",
+                          {"kind": "reconstruct", "ct": ct_path, "mask": mask_path,
+                           "params": params_dict(args)}, args,
+                          slicer=(ct_path, mask_path, "the segment"),
+                          cli=(ct_path, mask_path, 1, os.path.join(pdir, f"{case}_cli.vtp"),
+                               os.path.join(pdir, f"{case}_cli.json")))
+        out["runs"][case] = row
+        texts.append(bench_stages.stage_table(row, row["title"]))
+        log(f"[profile] {case} (cprofile) ...")
         res = run_isolated({"kind": "reconstruct", "ct": ct_path, "mask": mask_path,
-                            "params": params_dict(args), "cprofile": prof}, args.timeout, _workdir(args))
-        row = run_row(key, res)
-        if res.get("ok"):
-            rep = res["bones"][0]["report"]
-            row["timings"] = rep["timings"]
-            row["spacing_mm"] = rep["input"].get("resample_spacing_mm")
-            row["faces"] = int(len(res["bones"][0]["faces"]))
-            row["counts"] = rep.get("counts")
-        if prof:
-            row["profile_cumulative"] = res.get("profile_cumulative")
-            row["profile_tottime"] = res.get("profile_tottime")
-        out[key] = row
-    text = profile_table(out["plain"], f"{case} phantom at the defaults")
+                            "params": params_dict(args), "cprofile": True}, args.timeout, _workdir(args))
+        cp = run_row("cprofile", res)
+        cp["profile_cumulative"] = res.get("profile_cumulative")
+        cp["profile_tottime"] = res.get("profile_tottime")
+        out["cprofile"] = cp
+        if cp.get("profile_cumulative"):
+            with open(os.path.join(pdir, "cprofile.txt"), "w", encoding="utf-8") as fh:
+                fh.write(cp["profile_cumulative"] + "\n\n" + cp["profile_tottime"])
+    data = args.data or "/work/shared/data"
+    if "L1-L5" in wanted:
+        import bench_real
+        _, folder, labfile, targets, _ = next(r for r in bench_real.RUNS if r[0] == "pelvis_L1-L5")
+        ct_r = os.path.join(data, folder, "ct.nrrd")
+        lab_r = os.path.join(data, folder, labfile)
+        if os.path.exists(ct_r) and os.path.exists(lab_r):
+            names = _label_names(os.path.join(data, folder, "labels.csv"))
+            union = _union_mask(lab_r, targets, os.path.join(pdir, "L1-L5_union.nrrd"))
+            row = profile_run("L1-L5", f"real 3 mm CT, L1-L5 in one run ({folder}; every other label a "
+                              "neighbour)", {"kind": "many", "ct": ct_r, "labels": lab_r, "targets": targets,
+                                             "neighbours": "auto", "names": names,
+                                             "params": params_dict(args)},
+                              args, slicer=(ct_r, union, "the union of the five labels"))
+            out["runs"]["L1-L5"] = row
+            texts.append(bench_stages.stage_table(row, row["title"]))
+        else:
+            out["runs"]["L1-L5"] = {"ok": False, "error": f"no real CT in {data}/{folder}"}
+    if "chest_scapula" in wanted:
+        import bench_chest
+        cdir = args.chest_dir or os.path.join(args.out_dir, "_chest", "0p7x0p7x2p5mm_s0")
+        log(f"[profile] chest phantom 512 x 512 x 120, 0.7 x 0.7 x 2.5 mm, seed 0, in {cdir} ...")
+        brec = bench_chest.build(cdir, 0, (512, 512, 120), (0.7, 0.7, 2.5), timeout=args.timeout)
+        log(f"[profile] chest phantom: {'cached' if brec.get('cached') else fmt(brec.get('wall_s'), 0) + ' s'}")
+        names = _label_names(os.path.join(cdir, "labels.csv"))
+        value = next(v for v, n in names.items() if n == "scapula_left")
+        lab_c, ct_c = os.path.join(cdir, "labels.nrrd"), os.path.join(cdir, "ct.nrrd")
+        mask_c = _union_mask(lab_c, [value], os.path.join(pdir, "scapula_left_mask.nrrd"))
+        row = profile_run("chest_scapula", "chest phantom (seed 0, 512 x 512 x 120, 0.7 x 0.7 x 2.5 mm), "
+                          "scapula_left alone, every other label a neighbour",
+                          {"kind": "many", "ct": ct_c, "labels": lab_c, "targets": [value],
+                           "neighbours": "auto", "names": names, "params": params_dict(args)},
+                          args, slicer=(ct_c, mask_c, "the scapula's label"))
+        row["build"] = brec
+        out["runs"]["chest_scapula"] = row
+        texts.append(bench_stages.stage_table(row, row["title"]))
+    text = "\n\n".join(texts)
     print(text, flush=True)
-    if out["cprofile"].get("profile_cumulative"):
-        with open(os.path.join(pdir, "cprofile.txt"), "w") as fh:
-            fh.write(out["cprofile"]["profile_cumulative"] + "\n\n" + out["cprofile"]["profile_tottime"])
+    with open(os.path.join(pdir, "STAGES.md"), "w", encoding="utf-8") as fh:
+        fh.write(text + "\n")
+    if (out.get("cprofile") or {}).get("profile_cumulative"):
         print(_top_functions(out["cprofile"]["profile_cumulative"], 25), flush=True)
     return out
-
-
-STAGE_ORDER = ["import_open3d", "prepare", "filter", "ownership", "threshold", "visible", "poisson",
-               "territories", "deform", "refine", "contacts", "cap", "checks", "plausibility"]
 
 
 def profile_table(row, title):
@@ -1015,7 +1140,15 @@ def write_report(results, args):
         L += _scaling_lines(sc)
     pr = results.get("profile")
     if pr:
-        L += ["## 5. Profile", "", profile_table(pr.get("plain"), f"{pr['case']} phantom at the defaults"), ""]
+        import bench_stages
+        L += ["## 5. Profile: per-stage time and memory", "",
+              "Each run in its own process; its memory sampled every few ms by a second process "
+              "(VmRSS, and the exact peak between samples: VmHWM read and reset), the stages' start "
+              "and end from the report's `stage_spans` (Testing/bench_stages.py).", ""]
+        for name, row in (pr.get("runs") or {}).items():
+            L += [bench_stages.stage_table(row, row.get("title") or name), ""]
+            if row.get("figure"):
+                L += [f"![{name} memory]({row['figure']})", ""]
         cp = pr.get("cprofile") or {}
         if cp.get("profile_cumulative"):
             L += [f"Inside the stages (cProfile, a second run: {fmt(cp.get('seconds'), 1)} s with the "
@@ -1027,7 +1160,7 @@ def write_report(results, args):
             if isinstance(r, dict) and r.get("joint_timings"):
                 L += [profile_table(real_profile_row(r), f"real CT run {nm} ({r['what']}; per-bone "
                                     "stages summed over its bones)"), ""]
-    with open(os.path.join(args.out_dir, "REPORT.md.tmp"), "w") as fh:
+    with open(os.path.join(args.out_dir, "REPORT.md.tmp"), "w", encoding="utf-8") as fh:
         fh.write("\n".join(L) + "\n")
     os.replace(os.path.join(args.out_dir, "REPORT.md.tmp"), os.path.join(args.out_dir, "REPORT.md"))
 
@@ -1124,7 +1257,15 @@ def main(argv=None):
     ap.add_argument("--real", action="store_true", help="the real CTs in /work/shared/data")
     ap.add_argument("--real-runs", default=None, help="comma-separated names of real runs (default all)")
     ap.add_argument("--scaling", action="store_true", help="time and memory vs spacing, pair vs one, vs Slicer")
-    ap.add_argument("--profile", action="store_true", help="per-stage times of one femur run")
+    ap.add_argument("--profile", action="store_true",
+                    help="per-stage time and memory of the femur phantom (beside Slicer's default closed "
+                         "surface), the real 3 mm L1-L5 run and the chest phantom's scapula")
+    ap.add_argument("--profile-runs", default=None,
+                    help="comma-separated runs of --profile: phantom, L1-L5, chest_scapula (default all; "
+                         "--quick: phantom)")
+    ap.add_argument("--chest-dir", default=None,
+                    help="the chest phantom's folder (built there if absent or stale; default "
+                         "<out>/_chest/0p7x0p7x2p5mm_s0)")
     ap.add_argument("--anatomical", action="store_true",
                     help="the anatomical phantoms (Testing/bench_anatomical.py: real bone shapes, thin plates)")
     ap.add_argument("--anatomical-cases", default=None,
@@ -1157,6 +1298,7 @@ def main(argv=None):
         args.scaling_case, args.scaling_spacings = "tiny", [1.0, 0.7, 0.5]
         args.side_by_side = []
         args.profile_case = "tiny"
+        args.profile_runs = _split(args.profile_runs) if args.profile_runs is not None else ["phantom"]
         args.repeat = args.repeat or 1
         if args.label_kinds is None:
             args.label_kinds = ["rough", "ai_steal3"]
@@ -1166,6 +1308,8 @@ def main(argv=None):
         args.scaling_case, args.scaling_spacings = "femur", SCALING_SPACINGS
         args.side_by_side = SIDE_BY_SIDE
         args.profile_case = "femur"
+        args.profile_runs = (_split(args.profile_runs) if args.profile_runs is not None else
+                             ["phantom", "L1-L5", "chest_scapula"])
         args.repeat = args.repeat or 2
     from BoneWatertightLib.params import Parameters
     dflt = Parameters()

@@ -9,6 +9,7 @@ import json
 import os
 
 import numpy as np
+import pytest
 
 import bench_common
 import bench_worker
@@ -30,13 +31,13 @@ def test_harness_runs_and_reports(tmp_path):
     rc = benchmark.main(["--cases", "tiny", "--out", str(out), "--samples", "2000",
                          "--methods", "threshold_mc", "--timeout", "300"])
     assert rc == 0
-    text = (out / "REPORT.md").read_text()
+    text = (out / "REPORT.md").read_text(encoding="utf-8")
     assert "## 1. Phantoms, single bone" in text and "### `tiny`" in text
     # Several components: the threshold surface fails the checks, and the report says so.
     line = next(ln for ln in text.splitlines() if ln.startswith("| threshold + MC + smoothing |"))
     assert "**fail**" in line and "connected components" in line
     assert (out / "tiny" / "cdf.png").exists() and (out / "tiny" / "sections.png").exists()
-    res = json.loads((out / "results.json").read_text())
+    res = json.loads((out / "results.json").read_text(encoding="utf-8"))
     row = res["phantoms"]["tiny"]["rows"][0]
     assert row["method"] == "threshold_mc" and row["ok"]
     assert row["seconds"] > 0 and row["peak_rss_mb"] > row["base_rss_mb"] > 0
@@ -49,7 +50,7 @@ def test_real_part_skips_without_data(tmp_path):
     rc = benchmark.main(["--cases", "none", "--real", "--data", str(tmp_path / "absent"),
                          "--out", str(out)])
     assert rc == 0
-    assert "no real CT" in (out / "REPORT.md").read_text()
+    assert "no real CT" in (out / "REPORT.md").read_text(encoding="utf-8")
 
 
 def test_worker_reports_a_failure_as_a_result(tmp_path):
@@ -78,3 +79,80 @@ def test_targets_state_verdicts():
     assert got["… and never raises the maximum"] is False  # femur 0.5 -> 0.9
     table = bench_common.md_table(["a", "b"], [[1, "x|y"]])
     assert table.splitlines()[2] == "| 1 | x/y |"
+
+
+# ---------------------------------------------------------------------------- per-stage memory
+
+def _sampled(spans, t, rss, peak, total):
+    return {"t_s": t, "rss_mb": rss, "peak_mb": peak, "spans": spans, "total_s": total,
+            "before_mb": 100.0, "period_s": 0.1, "exact": True}
+
+
+def _span(stage, start, end, label=None):
+    return {"stage": stage, "bone": None if label is None else f"b{label}", "label": label,
+            "start_s": start, "end_s": end}
+
+
+def test_stage_memory_gives_each_peak_to_the_stages_running_then():
+    import bench_stages
+
+    # samples every 0.1 s; sample i's peak is the peak over (t[i-1], t[i]]
+    t = [round(0.1 * i, 1) for i in range(-1, 11)]  # -0.1 (the reset) .. 1.0
+    rss = [200.0] * len(t)
+    peak = [float("nan")] + [210.0] * (len(t) - 1)
+    peak[t.index(0.5)] = 900.0  # a spike in (0.4, 0.5]: both bones' poisson, not bone 2's deform
+    peak[t.index(0.9)] = 700.0  # a spike in (0.8, 0.9]: outside every stage
+    rss[t.index(0.6)] = 450.0   # the RSS when bone 2's deform ends (0.55 -> sample 0.6)
+    spans = [_span("prepare", 0.0, 0.2), _span("poisson", 0.2, 0.5, 1), _span("poisson", 0.25, 0.45, 2),
+             _span("deform", 0.55, 0.6, 2), _span("checks", 0.6, 0.75, 1)]
+    got = bench_stages.stage_memory(_sampled(spans, t, rss, peak, 1.0))
+    st = got["stages"]
+    assert list(st) == ["prepare", "poisson", "deform", "checks"]  # the pipeline's order
+    assert st["poisson"]["seconds"] == pytest.approx(0.5)  # summed over the bones
+    assert st["poisson"]["wall_s"] == pytest.approx(0.3)   # their union 0.2-0.5
+    assert st["poisson"]["peak_mb"] == 900.0 and st["poisson"]["bones"] == 2
+    assert st["deform"]["peak_mb"] == 210.0 and st["deform"]["end_mb"] == 450.0
+    assert st["prepare"]["peak_mb"] == 210.0 and st["prepare"]["end_mb"] == 200.0
+    out = got["outside"]  # 0.5-0.55 and 0.75-1.0
+    assert out["seconds"] == pytest.approx(0.30) and out["gaps"] == 2 and out["peak_mb"] == 900.0
+    assert got["total"]["peak_mb"] == 900.0 and got["total"]["seconds"] == 1.0
+    assert got["max_sample_gap_s"] == pytest.approx(0.1)
+    spans[-1] = _span("checks", 0.6, 0.95, 1)  # now over the 0.8-0.9 spike
+    assert bench_stages.stage_memory(_sampled(spans, t, rss, peak, 1.0))["stages"]["checks"]["peak_mb"] == 700.0
+
+
+def test_profile_prints_per_stage_time_and_memory_beside_slicer(tmp_path):
+    """--profile --quick: the tiny phantom's run with its memory sampled; every stage the report
+    timed has finite figures, peak >= end, the seconds of report.timings; the Slicer-style
+    baseline and the whole CLI run beside it, in the same invocation."""
+    out = tmp_path / "bench"
+    rc = benchmark.main(["--cases", "none", "--profile", "--quick", "--out", str(out), "--timeout", "300"])
+    assert rc == 0
+    res = json.loads((out / "results.json").read_text(encoding="utf-8"))
+    row = res["profile"]["runs"]["tiny"]
+    assert row["ok"] and row["bones_ok"] == 1
+    st = row["stage_table"]
+    # (a loaded machine delays the sampler: its largest gap is no bound, only its peaks are exact)
+    assert st["exact"] and st["samples"] > 50 and 0 < st["max_sample_gap_s"] < row["seconds"]
+    timed = {k for k, v in row["timings"].items() if k not in ("total", "import_open3d") and v > 0}
+    assert timed >= {"prepare", "filter", "ownership", "threshold", "visible", "poisson", "deform",
+                     "refine", "checks", "plausibility"}
+    assert timed <= set(st["stages"])
+    for k, r in list(st["stages"].items()) + [("total", st["total"])]:
+        for key in ("seconds", "wall_s", "peak_mb", "end_mb"):
+            assert r[key] is not None and np.isfinite(r[key]), (k, key)
+        assert r["peak_mb"] >= r["end_mb"] > 0, k
+        assert r["seconds"] == pytest.approx(row["timings"][k], abs=1e-6), k
+    assert st["total"]["peak_mb"] == max(r["peak_mb"] for r in [*st["stages"].values(), st["outside"]])
+    assert row["peak_rss_mb"] >= st["total"]["peak_mb"] > st["rss_at_start_mb"] > 0
+    # one bone: the stages follow one another, the rest of the run is outside them
+    assert sum(r["seconds"] for r in st["stages"].values()) + st["outside"]["seconds"] == pytest.approx(
+        row["timings"]["total"], abs=1e-6)
+    assert row["slicer_default"]["ok"] and row["cli"]["exit_code"] == 0
+    assert row["ratio_call_to_slicer"] == pytest.approx(row["seconds"] / row["slicer_default"]["seconds"])
+    assert row["ratio_call_to_slicer"] > 1 and row["ratio_cli_to_slicer"] > 1
+    text = (out / "profile" / "STAGES.md").read_text(encoding="utf-8")
+    assert "| stage | s | % of total | wall s | peak MB | end MB |" in text
+    assert all(f"| {k} |" in text for k in timed) and "| **total** |" in text
+    assert "call / Slicer = **" in text and "CLI / Slicer = **" in text
+    assert "## 5. Profile" in (out / "REPORT.md").read_text(encoding="utf-8")

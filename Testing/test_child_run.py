@@ -119,7 +119,8 @@ def _running(pid: int) -> bool:
 
 def _strip_times(x):
     if isinstance(x, dict):
-        return {k: _strip_times(v) for k, v in x.items() if k not in ("timings", "seconds")}
+        return {k: _strip_times(v) for k, v in x.items()
+                if k not in ("timings", "seconds", "stage_spans")}
     if isinstance(x, list):
         return [_strip_times(v) for v in x]
     return x

@@ -181,6 +181,59 @@ def test_tiny_phantom_checks_accuracy_and_no_bridge(tiny, tiny_result):
     assert rep.plausibility.segment_genus == 0
 
 
+SHARED_STAGES = ("import_open3d", "prepare", "filter", "ownership", "territories", "contacts")
+
+
+def _assert_spans_match_the_times(spans, times_of, total):
+    """Every stage timed for a bone (or shared) has spans whose durations add up to that time,
+    within the run, in order of start; the shared stages follow one another."""
+    assert spans == sorted(spans, key=lambda s: (s["start_s"], s["end_s"]))
+    assert all(0.0 <= s["start_s"] <= s["end_s"] <= total for s in spans)
+    summed = {}
+    for s in spans:
+        key = (s["stage"], s["label"])
+        summed[key] = summed.get(key, 0.0) + s["end_s"] - s["start_s"]
+        assert (s["bone"] is None) == (s["label"] is None) == (s["stage"] in SHARED_STAGES)
+    for (stage, label), seconds in summed.items():
+        assert seconds == pytest.approx(getattr(times_of(label), stage), abs=1e-9), (stage, label)
+    for label in {lab for _, lab in summed}:
+        for stage, seconds in vars(times_of(label)).items():
+            if stage != "total" and seconds > 0 and (label is None) == (stage in SHARED_STAGES):
+                assert (stage, label) in summed, (stage, label)
+    shared = [s for s in spans if s["label"] is None]
+    assert all(a["end_s"] <= b["start_s"] for a, b in zip(shared, shared[1:]))
+
+
+def test_stage_spans_add_up_to_the_stage_times(tiny_result):
+    """report.stage_spans (when each timed stage ran, for the benchmark's per-stage memory)."""
+    rep = tiny_result.report
+    spans = rep.stage_spans
+    assert {s["stage"] for s in spans} >= {"prepare", "poisson", "deform", "refine", "checks"}
+    assert {s["label"] for s in spans} == {None, 1}
+    _assert_spans_match_the_times(spans, lambda label: rep.timings, rep.timings.total)
+
+
+def test_stage_spans_of_bones_run_together():
+    """Two bones: the joint report has every span, each bone's report the shared ones and its
+    own; the per-bone spans add up to each bone's own stage times."""
+    from BoneWatertightLib.pipeline import reconstruct_many
+    from test_child_run import NAMES, PARAMS, two_balls
+
+    ct, labels, _ = two_balls()
+    res = reconstruct_many(ct, labels, [1, 2], PARAMS, names=NAMES)
+    joint = res.report
+    by_label = {b.label: b.report.timings for b in res.bones}
+
+    def times_of(label):
+        return joint.timings if label is None else by_label[label]
+
+    assert {s["label"] for s in joint.stage_spans} == {None, 1, 2}
+    _assert_spans_match_the_times(joint.stage_spans, times_of, joint.timings.total)
+    for b in res.bones:
+        assert b.report.stage_spans == [s for s in joint.stage_spans if s["label"] in (None, b.label)]
+        assert {s["bone"] for s in b.report.stage_spans} == {None, NAMES[b.label]}
+
+
 def test_inputs_are_not_modified(tiny):
     ct_before = sitk.GetArrayFromImage(tiny.ct).copy()
     mask_before = sitk.GetArrayFromImage(tiny.mask).copy()

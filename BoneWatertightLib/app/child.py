@@ -232,7 +232,8 @@ def _joint_report_of_one(case: dict, pipeline):
                        ownership=dict(pipeline.ownership), pairs=[],
                        timings=dataclasses.replace(pipeline.timings),
                        neighbours=list(case.get("inputs", {}).get("neighbours") or []),
-                       coordinate_system=pipeline.coordinate_system, units=pipeline.units)
+                       coordinate_system=pipeline.coordinate_system, units=pipeline.units,
+                       stage_spans=list(pipeline.stage_spans))
 
 
 # ----------------------------------------------------------------------------------------
