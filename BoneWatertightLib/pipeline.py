@@ -594,6 +594,13 @@ def threshold_stage(run: _Run, ws: Workspace) -> None:
     failure for each target with no voxel in [HT, theta_max]."""
     params = run.params
     run.stage("thresholds")
+    with timed(run.times, "thresholds", run.spans):
+        _estimate_thresholds(run, ws)
+
+
+def _estimate_thresholds(run: _Run, ws: Workspace) -> None:
+    """threshold_stage's work: ``ws.h0``, ``ws.ht``, ``ws.thresholds``, the targets' check."""
+    params = run.params
     prep = ws.prep
     nct, nlab, nsp = prep.native
     values = [prep.values[t - 1] for t in prep.targets]
@@ -1025,29 +1032,35 @@ def territory_stage(run: _Run, ws: Workspace, bones: dict) -> None:
                 ws.labels.shape, ws.d, threads=run.threads)
 
 
+def _refine_field(ws: Workspace) -> None:
+    """The refinement's smoothed CT (``ws.ct_smooth`` on steps ``ws.ct_smooth_d``)."""
+    steps = tuple(ws.prep.refine_spacing) or (ws.d,) * 3
+    if min(steps) < ws.d:
+        # A finer grid of its own, made from the crop on the CT's grid once the working
+        # grid's CT volumes are gone, and smoothed in place.
+        ws.ct_f = ws.prep.ct = None
+        release_free_memory()
+        field = _prepare.refine_ct(ws.prep)
+        sigma = [max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / st) for st in steps[::-1]]
+        ws.ct_smooth = ndimage.gaussian_filter(field, sigma=sigma, mode="nearest",
+                                               output=field)
+        ws.ct_smooth_d = steps
+        del field
+    else:
+        ws.ct_smooth = ndimage.gaussian_filter(
+            ws.prep.ct, sigma=max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / ws.d),
+            mode="nearest")
+        ws.ct_smooth_d = ws.d
+
+
 def deform_stage(run: _Run, ws: Workspace, bones: dict) -> None:
     """Per bone: the deformation (eq. 15) and the edge refinement, never toward another
     bone's side of a joint."""
     params = run.params
     sub = run.stage("deform")
     if params.refine_edges:
-        steps = tuple(ws.prep.refine_spacing) or (ws.d,) * 3
-        if min(steps) < ws.d:
-            # A finer grid of its own, made from the crop on the CT's grid once the working
-            # grid's CT volumes are gone, and smoothed in place.
-            ws.ct_f = ws.prep.ct = None
-            release_free_memory()
-            field = _prepare.refine_ct(ws.prep)
-            sigma = [max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / st) for st in steps[::-1]]
-            ws.ct_smooth = ndimage.gaussian_filter(field, sigma=sigma, mode="nearest",
-                                                   output=field)
-            ws.ct_smooth_d = steps
-            del field
-        else:
-            ws.ct_smooth = ndimage.gaussian_filter(
-                ws.prep.ct, sigma=max(REFINE_SIGMA_MIN_VOXELS, REFINE_SIGMA_MM / ws.d),
-                mode="nearest")
-            ws.ct_smooth_d = ws.d
+        with timed(run.times, "refine_field", run.spans):
+            _refine_field(ws)
     # No later stage reads the resampled or the filtered CT, or the crop on the CT's own grid.
     ws.ct_f = ws.prep.ct = ws.prep.native = None
 
@@ -1635,8 +1648,8 @@ def _interpenetration_error(bad: list) -> ReconstructionError:
 
 def _shared_times(times: StageTimes, shared: StageTimes) -> None:
     """The shared stages' seconds (and the total) into a bone's own times."""
-    for stage in ("import_open3d", "prepare", "filter", "ownership", "territories", "contacts",
-                  "total"):
+    for stage in ("import_open3d", "prepare", "filter", "thresholds", "ownership", "territories",
+                  "refine_field", "contacts", "total"):
         setattr(times, stage, getattr(shared, stage))
 
 

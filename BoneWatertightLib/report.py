@@ -34,11 +34,13 @@ class StageTimes:
     import_open3d: float = 0.0
     prepare: float = 0.0
     filter: float = 0.0
+    thresholds: float = 0.0     # H0 and HT estimated (shared)
     ownership: float = 0.0
     threshold: float = 0.0
     visible: float = 0.0
     poisson: float = 0.0
     territories: float = 0.0
+    refine_field: float = 0.0   # the refinement's smoothed CT on its own grid (shared)
     deform: float = 0.0
     refine: float = 0.0
     contacts: float = 0.0

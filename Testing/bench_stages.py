@@ -28,8 +28,9 @@ import numpy as np
 
 from bench_common import fmt
 
-STAGE_ORDER = ["import_open3d", "prepare", "filter", "ownership", "threshold", "visible", "poisson",
-               "territories", "deform", "refine", "contacts", "cap", "checks", "plausibility"]
+STAGE_ORDER = ["import_open3d", "prepare", "filter", "thresholds", "ownership", "threshold", "visible",
+               "poisson", "territories", "refine_field", "deform", "refine", "contacts", "cap",
+               "checks", "plausibility"]
 OUTSIDE = "(outside the timed stages)"
 
 

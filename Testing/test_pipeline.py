@@ -181,7 +181,8 @@ def test_tiny_phantom_checks_accuracy_and_no_bridge(tiny, tiny_result):
     assert rep.plausibility.segment_genus == 0
 
 
-SHARED_STAGES = ("import_open3d", "prepare", "filter", "ownership", "territories", "contacts")
+SHARED_STAGES = ("import_open3d", "prepare", "filter", "thresholds", "ownership", "territories",
+                 "refine_field", "contacts")
 
 
 def _assert_spans_match_the_times(spans, times_of, total):
