@@ -22,8 +22,8 @@ SHAPE = (40, 64, 64)  # z, y, x; 1 mm voxels
 
 def _scene(plate_in_hole: bool, seed: int, hole_radius: float = 5.0):
     """(inside, ct): a 3 mm plate 44 x 44 mm, its voxels with a round hole; the CT (blurred
-    1 mm, 20 HU of noise correlated over a voxel) with the plate 1 mm thick at 700 HU across the hole, or with the
-    hole."""
+    1 mm, 20 HU of noise correlated over a voxel) with the plate 1 mm thick at 700 HU across the
+    hole, or with the hole."""
     z, y, x = np.indices(SHAPE)
     plate = (z >= 18) & (z < 21) & (np.abs(y - 32) < 22) & (np.abs(x - 32) < 22)
     hole = (y - 32) ** 2 + (x - 32) ** 2 <= hole_radius ** 2

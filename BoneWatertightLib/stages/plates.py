@@ -352,7 +352,6 @@ def _ridges(sm, idx, d, native, cortex, min_contrast):
     return idx[keep], pts[keep], e[keep], w[keep], contrast[keep]
 
 
-
 # Plates across a surface's holes are sought up to HOLE_REACH_MM from it (holes up to about
 # twice that across).
 HOLE_REACH_MM = 8.0
@@ -378,9 +377,9 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
     2. A plug is a plate's when, across it (:func:`_across`), its median peak stands at least
        the contrast above the soft tissue and above the lower sides, holds bone at least
        PLATE_MIN_MM of cortex thick (less is soft tissue's texture, as for :func:`find_plates`),
-       touches no ``exclude`` voxel, and the hole is wider than the CT's blur in its plane (its deepest
-       voxel PLATE_WINDOW x that resolution from the surface: a narrower hole reads bright
-       in the middle whether or not a plate spans it).
+       touches no ``exclude`` voxel, and the hole is wider than the CT's blur in its plane (its
+       deepest voxel PLATE_WINDOW x that resolution from the surface: a narrower hole reads
+       bright in the middle whether or not a plate spans it).
     3. Each plate's plug, largest first, is confirmed on the whole box: kept when the voxels
        with it have fewer tunnels (:func:`_tunnels`) than without it and than the surface
        itself (a pocket closed against the surface deeper than the plug's window, or a tunnel
