@@ -970,8 +970,8 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
         holes["closed"] = int(closed)
         holes["tunnels"] = max(0, holes["tunnels"] - closed)
         if holes["tunnels"]:
-            # (measured: a sacral foramen whose blurred content reads as a faint ridge, which
-            # M0's own evidence - the carve of the lumen - opens again)
+            # (measured: sacral foramina whose blurred content reads as a faint ridge, which
+            # the remeshing with M0's other evidence leaves open)
             bone.fallbacks.add("poisson", "tunnels of M0 across which the CT shows a faint ridge "
                                "stay open: remeshed with the ridge's plug, M0 kept them (its "
                                "other evidence has no bone there; a foramen the slices blur, or "
