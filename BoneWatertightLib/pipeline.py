@@ -276,6 +276,8 @@ class BoneWork:
     plates: Optional[_plates.Plates] = None  # thin plates the thresholds miss (grid mm)
     # M0's tunnels through a thin plate the CT shows (_plate_holes; box mm)
     plate_holes: dict = field(default_factory=dict)
+    plate_ct: Optional[np.ndarray] = None  # the masks' box of the CT at the plates' scale
+
     fusion: Optional[_poisson.Fusion] = None  # what M0 joined to the Poisson surface
     own_reference: float = float("nan")      # its cortex's contrast after eq. (15) (HU)
     profiles: Optional[tuple] = None         # its CT profiles then (refine.sample_profiles)
@@ -743,11 +745,13 @@ def thin_plates(run: _Run, ws: Workspace, bone: BoneWork) -> None:
     resolved = ndimage.binary_erosion(masks.occupancy, structure=_threshold.SIX,
                                       iterations=max(1, int(round(0.5 * t_min / d))))
     # A ridge as high as the label level always counts; fainter ones where the noise allows.
+    # The smoothed CT is kept for M0's plate holes (_plate_holes: the same box and scale).
+    bone.plate_ct = _plates.smooth_ct(ws.prep.ct[box], d, ws.prep.ct_spacing)
     bone.plates = _plates.find_plates(
         ws.prep.ct[box], region, masks.w_ht, resolved, d, native_spacing=ws.prep.ct_spacing,
         soft=soft, cortex=cortex,
         max_contrast=_ownership.LABEL_LEVEL_FRACTION * (ws.ht - soft), min_thickness=t_min,
-        origin=masks.origin)
+        origin=masks.origin, smoothed=bone.plate_ct)
     if bone.plates.n:
         slab = bone.plates.mask(masks.w_ht.shape, masks.origin)
         masks.w_ht |= slab
@@ -808,7 +812,8 @@ def _plate_holes(ws: Workspace, bone: BoneWork, m0: Surface) -> dict:
         cortex=ws.thresholds["cortex_hu"],
         max_contrast=_ownership.LABEL_LEVEL_FRACTION * (ws.ht - soft), exclude=exclude,
         surface_genus=int(genus),
-        noise=(bone.plates.info.get("noise_hu") if bone.plates is not None else None))
+        noise=(bone.plates.info.get("noise_hu") if bone.plates is not None else None),
+        smoothed=bone.plate_ct)
 
 
 def _mask_field(mask: np.ndarray, d: float, shape: tuple, lo, h: float) -> np.ndarray:
@@ -977,6 +982,7 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
                                "other evidence has no bone there; a foramen the slices blur, or "
                                "a hole in a plate)", holes["tunnels"], "tunnels", where)
     bone.plate_holes = holes
+    bone.plate_ct = None
     if fusion.info.get("joined_pieces"):
         bone.fallbacks.add("poisson", "bone the thresholds hold that the Poisson surface missed "
                            f"by more than {fusion.solid_reach_mm:g} mm (a thin process it "

@@ -178,7 +178,8 @@ def empty_plates(spacing: float) -> Plates:
 
 def find_plates(ct: np.ndarray, region: np.ndarray, bone: np.ndarray, resolved: np.ndarray,
                 spacing: float, *, native_spacing, soft: float, cortex: float,
-                max_contrast: float, min_thickness: float, origin=(0.0, 0.0, 0.0)) -> Plates:
+                max_contrast: float, min_thickness: float, origin=(0.0, 0.0, 0.0),
+                smoothed: np.ndarray = None) -> Plates:
     """Thin plates of one bone (see the module doc).
 
     Parameters
@@ -210,6 +211,8 @@ def find_plates(ct: np.ndarray, region: np.ndarray, bone: np.ndarray, resolved: 
     origin : sequence of 3 floats
         x-y-z mm of the box's voxel (0, 0, 0) on the working grid (the points are returned in
         working-grid millimetres).
+    smoothed : (z, y, x) float array, optional
+        :func:`smooth_ct` of ``ct`` when already made (made here otherwise).
 
     Returns
     -------
@@ -220,19 +223,14 @@ def find_plates(ct: np.ndarray, region: np.ndarray, bone: np.ndarray, resolved: 
     if not region.any():
         return empty_plates(d)
     sigma_mm = max(d, PLATE_SIGMA_FRACTION * float(native.min()))
-    sm = ndimage.gaussian_filter(ct.astype(np.float32), sigma=sigma_mm / d, mode="nearest")
+    sm = smooth_ct(ct, d, native) if smoothed is None else smoothed
     noise = soft_tissue_noise(sm, region | bone, soft)
     min_contrast = min(max_contrast, PLATE_NOISE_FACTOR * noise)
     cand = region & (sm >= soft + min_contrast) & ~resolved
     cand[[0, -1], :, :] = False
     cand[:, [0, -1], :] = False
     cand[:, :, [0, -1]] = False
-    # Local maxima along at least one grid axis: the cheap pre-selection of ridge voxels.
-    peak_any = np.zeros(sm.shape, bool)
-    for axis in range(3):
-        peak_any |= (sm >= np.roll(sm, 1, axis=axis)) & (sm >= np.roll(sm, -1, axis=axis))
-    cand &= peak_any
-    del peak_any
+    cand &= _local_peaks(sm)
     idx = np.argwhere(cand)
     del cand
     found = [_ridges(sm, idx[a:a + CHUNK], d, native, cortex, min_contrast)
@@ -304,6 +302,38 @@ def soft_tissue_noise(sm: np.ndarray, exclude: np.ndarray, soft: float) -> float
     return float(1.4826 * np.median(np.abs(v - np.median(v))))
 
 
+def smooth_ct(ct: np.ndarray, spacing: float, native_spacing) -> np.ndarray:
+    """The CT (z, y, x) smoothed at the ridges' scale: a Gaussian of sigma = max(working
+    spacing, PLATE_SIGMA_FRACTION x the CT's finest spacing), float32 (the scale of the blur a
+    plate has already had). ``native_spacing``: the CT's own spacing (x, y, z) in mm."""
+    d = float(spacing)
+    sigma_mm = max(d, PLATE_SIGMA_FRACTION * float(np.min(native_spacing)))
+    return ndimage.gaussian_filter(np.asarray(ct, np.float32), sigma=sigma_mm / d, mode="nearest")
+
+
+def _local_peaks(sm: np.ndarray) -> np.ndarray:
+    """Voxels that are a local maximum of ``sm`` along at least one grid axis (bool): the
+    cheap pre-selection of ridge voxels."""
+    peak_any = np.zeros(sm.shape, bool)
+    for axis in range(3):
+        peak_any |= (sm >= np.roll(sm, 1, axis=axis)) & (sm >= np.roll(sm, -1, axis=axis))
+    return peak_any
+
+
+def _slab_thickness(prof: np.ndarray, il: np.ndarray, ir: np.ndarray, step: float,
+                    cortex: float) -> tuple:
+    """(background (k,), thickness (k,) mm) of profiles ``prof`` (k, n) sampled every ``step``
+    mm across a plate, between their valleys at columns ``il`` and ``ir`` (k,): the background
+    is the valleys' mean (soft tissue, fat, or marrow between two cortices), the bone mass what
+    stands above it between them, as a thickness of ``cortex`` (the blurred-slab model)."""
+    rows = np.arange(len(prof))
+    bg = 0.5 * (prof[rows, il] + prof[rows, ir])
+    cols = np.arange(prof.shape[1])[None, :]
+    between = (cols >= il[:, None]) & (cols <= ir[:, None])
+    mass = np.sum(np.where(between, np.clip(prof - bg[:, None], 0.0, None), 0.0), axis=1) * step
+    return bg, mass / np.maximum(cortex - bg, 1.0)
+
+
 # Candidate voxels are examined in chunks of this many (bounds the profiles' memory).
 CHUNK = 100_000
 
@@ -339,14 +369,7 @@ def _ridges(sm, idx, d, native, cortex, min_contrast):
     peak = np.max(np.where((np.abs(t) <= d)[None, :], prof, -np.inf), axis=1)
     il = np.argmin(np.where(within & (t[None, :] < 0), prof, np.inf), axis=1)
     ir = np.argmin(np.where(within & (t[None, :] > 0), prof, np.inf), axis=1)
-    rows = np.arange(len(pts))
-    # Local background: the valleys on both sides (soft tissue, fat, or marrow between two
-    # cortices); the bone mass is what stands above it between them.
-    bg = 0.5 * (prof[rows, il] + prof[rows, ir])
-    cols = np.arange(len(t))[None, :]
-    between = (cols >= il[:, None]) & (cols <= ir[:, None])
-    mass = np.sum(np.where(between, np.clip(prof - bg[:, None], 0.0, None), 0.0), axis=1) * step
-    w = mass / np.maximum(cortex - bg, 1.0)
+    bg, w = _slab_thickness(prof, il, ir, step, cortex)
     contrast = peak - bg
     keep = (contrast >= min_contrast) & (w >= PLATE_MIN_MM) & (w < PLATE_MAX_RESOLUTION * res)
     return idx[keep], pts[keep], e[keep], w[keep], contrast[keep]
@@ -360,7 +383,8 @@ HOLE_REACH_MM = 8.0
 def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
                         native_spacing, soft: float, cortex: float, max_contrast: float,
                         exclude: np.ndarray, surface_genus: int,
-                        reach_mm: float = HOLE_REACH_MM, noise: float = None) -> dict:
+                        reach_mm: float = HOLE_REACH_MM, noise: float = None,
+                        smoothed: np.ndarray = None) -> dict:
     """Tunnels of a surface through which the CT shows a thin plate, and their plugs.
 
     A hole through a plate the CT barely resolves (a wall of two voxels that the opening
@@ -411,6 +435,8 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
     noise : float, optional
         The smoothed CT's noise in the soft tissue (HU; :func:`soft_tissue_noise`, measured
         again when not given).
+    smoothed : (z, y, x) float array, optional
+        :func:`smooth_ct` of ``ct`` when already made (:func:`find_plates`' of the same box).
 
     Returns
     -------
@@ -431,8 +457,7 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
     if surface_genus <= 0 or not inside.any():
         return out
     native = np.asarray(native_spacing, np.float64)
-    sigma_mm = max(d, PLATE_SIGMA_FRACTION * float(native.min()))
-    sm = ndimage.gaussian_filter(np.asarray(ct, np.float32), sigma=sigma_mm / d, mode="nearest")
+    sm = smooth_ct(ct, d, native) if smoothed is None else smoothed
     if noise is None:
         noise = soft_tissue_noise(sm, inside, soft)
     min_contrast = min(max_contrast, PLATE_NOISE_FACTOR * noise)
@@ -515,14 +540,9 @@ def _across(sm: np.ndarray, idx: np.ndarray, d: float, native: np.ndarray,
     prof = ndimage.map_coordinates(sm, samples.reshape(-1, 3).T, order=1,
                                    mode="nearest").reshape(len(pts), len(t))
     peak = prof[:, np.abs(t) <= d].max(axis=1)
-    rows = np.arange(len(pts))
     il = np.argmin(np.where(t[None, :] < -d, prof, np.inf), axis=1)
     ir = np.argmin(np.where(t[None, :] > d, prof, np.inf), axis=1)
-    bg = 0.5 * (prof[rows, il] + prof[rows, ir])
-    cols = np.arange(len(t))[None, :]
-    between = (cols >= il[:, None]) & (cols <= ir[:, None])
-    mass = np.sum(np.where(between, np.clip(prof - bg[:, None], 0.0, None), 0.0), axis=1) * step
-    thickness = mass / np.maximum(cortex - bg, 1.0)
+    bg, thickness = _slab_thickness(prof, il, ir, step, cortex)
     return (float(np.median(peak)), float(np.median(peak - bg)), float(np.median(thickness)),
             plane)
 
@@ -590,10 +610,7 @@ def _ridge_voxels(sm: np.ndarray, cand: np.ndarray, d: float, native: np.ndarray
     maximum along its eigenvector within the voxel - standing at least ``min_contrast`` above
     the lowest values on both sides within PLATE_WINDOW x the CT's resolution along it (as
     :func:`_ridges`, without the thickness bounds: any plate counts). (k, 3) z, y, x."""
-    peak_any = np.zeros(sm.shape, bool)
-    for axis in range(3):
-        peak_any |= (sm >= np.roll(sm, 1, axis=axis)) & (sm >= np.roll(sm, -1, axis=axis))
-    idx = np.argwhere(cand & peak_any)
+    idx = np.argwhere(cand & _local_peaks(sm))
     kept = []
     for a in range(0, len(idx), CHUNK):
         part = idx[a:a + CHUNK]
