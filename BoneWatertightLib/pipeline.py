@@ -1344,7 +1344,8 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
     with timed(bone.times, "plausibility", run.spans, bone.k):
         evidence, confidence, summary = evidence_of(run, ws, bone, verts, faces, flags)
         plaus, box, segment = plausibility_of(run, ws, bone, verts, faces, phys, planes,
-                                              edges=verts[evidence == _evidence.EDGE])
+                                              edges=verts[evidence == _evidence.EDGE],
+                                              reach=summary["threshold_reach"])
     warnings = _plausibility_warnings(run, plaus)
     fusion = bone.fusion
     if not planes and fusion is not None and fusion.genus is not None \
@@ -1451,9 +1452,10 @@ def _raise_failed_checks(checks, phys, faces, planes, name) -> None:
 
 
 def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys,
-                    planes, edges=None) -> tuple:
+                    planes, edges=None, reach=None) -> tuple:
     """(stages.plausibility's measures, gated; the box they were measured on (slices of the
-    working grid); the bone's segment on that box, (z, y, x) bool)."""
+    working grid); the bone's segment on that box, (z, y, x) bool). ``edges``: the vertices
+    with a CT edge (grid mm); ``reach``: the evidence summary's ``threshold_reach``."""
     k, d, own, lab = bone.k, ws.d, ws.own, ws.labels
     seg_all = lab == k
     box = _threshold.bbox_slices(seg_all | (own.owner == k),
@@ -1485,6 +1487,7 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
         (cores_b > 0) & (cores_b != k), _plaus.image_mask(box, planes, d), d,
         volume_mm3=enclosed_volume(phys, faces), coarseness=ws.prep.coarseness,
         band_mm=ws.band, edge_support=float("nan") if frac is None else frac,
+        threshold_reach=float("nan") if reach is None else reach["fraction"],
         owned=own.owner[box] == k,
         unsupported=None if own.unsupported is None else own.unsupported[box],
         unsupported_pieces=len(own.info.get("unsupported", {}).get(k, [])),

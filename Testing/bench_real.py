@@ -320,7 +320,7 @@ def report_lines(real):
           "(the gate's reasons follow). Time = the whole run (all bones of the row's run). Baselines on "
           "bones cut by the image run on the CT padded with air (closed at the image boundary).", ""]
     head = ["bone", "ref ml", "checks", "genus", "mean / p95 / max mm", "bias", "vol ratio", "cap mm²",
-            "inside / vol / max exc. / nbr overlap / edge", "gate", "run s", "run peak MB"]
+            "inside / vol / max exc. / nbr overlap / edge / HT reach", "gate", "run s", "run peak MB"]
     for name, r in real.items():
         if name.startswith("_") or name == "refusal_L4" or not isinstance(r, dict):
             continue
@@ -347,7 +347,7 @@ def report_lines(real):
                          f"{b['bias_mm']:+.2f}", fmt(b["volume_ratio"], 3), fmt(cap.get("area_mm2"), 0),
                          " / ".join(fmt(pl.get(k), 2) for k in ("segment_inside_fraction", "volume_ratio",
                                                                  "max_excursion_mm", "neighbour_label_overlap",
-                                                                 "edge_support")),
+                                                                 "edge_support", "threshold_reach")),
                          _gate(b), fmt(r.get("seconds"), 1), fmt(r.get("peak_rss_mb"), 0)])
         L += [md_table(head, rows), ""]
         pairs = r.get("pairs") or []

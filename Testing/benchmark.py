@@ -162,7 +162,8 @@ def pipeline_summary(rep):
     pl = rep.get("plausibility") or {}
     keep = ("segment_ml", "surface_ml", "volume_ratio", "segment_inside_fraction",
             "missing_fraction", "extra_fraction", "max_excursion_mm", "p95_excursion_mm",
-            "neighbour_label_overlap", "neighbour_core_overlap", "edge_support", "problems")
+            "neighbour_label_overlap", "neighbour_core_overlap", "edge_support", "threshold_reach",
+            "problems")
     return {"timings": rep.get("timings") or {}, "warnings": rep.get("warnings") or [],
             "plausibility": {k: pl.get(k) for k in keep},
             "thresholds": rep.get("thresholds") or {},
@@ -1101,6 +1102,7 @@ def write_report(results, args):
                 th = pp.get("thresholds") or {}
                 L += [f"Pipeline: d = {pp.get('spacing_mm')} mm, H0 {fmt(th.get('h0'), 0)} / HT "
                       f"{fmt(th.get('ht'), 0)} HU (auto), edge support {fmt((pp.get('plausibility') or {}).get('edge_support'), 2)}, "
+                      f"threshold reach {fmt((pp.get('plausibility') or {}).get('threshold_reach'), 2)}, "
                       f"stages: " + ", ".join(f"{k} {v:.1f}" for k, v in (pp.get('timings') or {}).items()
                                               if k != "total" and v and v >= 0.05) + " s.", ""]
             f = res.get("figures", {})

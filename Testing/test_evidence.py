@@ -78,3 +78,40 @@ def test_vertex_evidence_classes_on_a_synthetic_field():
     assert (ev[at_edge] == E.EDGE).all() and (conf[at_edge] > 0.5).all()
     assert (ev[inside] == E.LABEL_ONLY).all() and (conf[inside] == 0.0).all()
     assert set(summary["area_mm2"]) == set(E.CLASSES)
+
+
+def test_threshold_reach_is_the_border_the_ct_shows_that_ht_reaches():
+    """The plausibility gate's measure: of the free surface whose profile shows the bone's
+    edge, the area whose cortex reaches HT - all of it below the cortex, none above it (the
+    edge still shown); caps and the vertices without an edge do not count."""
+    d = 0.5
+    shape = (20, 20, 60)
+    x = np.arange(shape[2]) * d
+    from scipy import ndimage
+
+    ct = ndimage.gaussian_filter(
+        np.broadcast_to(np.where(x < 10.0, 600.0, 40.0), shape).astype(np.float32), 1.0)
+    corners = np.array([[4.0 if i & 1 == 0 else 10.0, 3.0 if i & 2 == 0 else 7.0,
+                         3.0 if i & 4 == 0 else 7.0] for i in range(8)])
+    faces = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+                      [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]])
+    from BoneWatertightLib.mesh.surface import enclosed_volume
+
+    if enclosed_volume(corners, faces) < 0:
+        faces = faces[:, ::-1].copy()
+    flags = np.zeros(len(faces), np.uint8)
+    flags[[0, 1]] = 1
+    reach = {}
+    for ht in (150.0, 700.0):
+        _, _, summary = E.vertex_evidence(corners, faces, flags, ct_smooth=ct, spacing=d,
+                                          ht=ht, soft=40.0, min_contrast=50.0, resolution=2.0)
+        reach[ht] = summary["threshold_reach"]
+    assert reach[150.0]["edge_area_mm2"] == reach[700.0]["edge_area_mm2"] > 0
+    assert reach[150.0]["edge_area_mm2"] < reach[150.0]["free_area_mm2"]  # the -x side: none
+    assert reach[150.0]["fraction"] == 1.0 and reach[700.0]["fraction"] == 0.0
+    area = E.vertex_areas(corners, faces)
+    on_cap = np.unique(faces[flags > 0])
+    assert reach[150.0]["free_area_mm2"] == pytest.approx(area.sum() - area[on_cap].sum())
+    _, _, summary = E.vertex_evidence(corners, faces, flags, ct_smooth=None, spacing=d, ht=150.0,
+                                      soft=40.0, min_contrast=50.0)
+    assert summary["threshold_reach"] is None

@@ -646,7 +646,8 @@ def _measure(inside, label, **kw):
     p = plausibility.measure(inside, verts, label, none, kw.pop("cores", none),
                              np.ones(label.shape, bool), 1.0,
                              volume_mm3=float(inside.sum()), coarseness=2.0, band_mm=3.0,
-                             edge_support=kw.pop("edge", 0.95), **kw)
+                             edge_support=kw.pop("edge", 0.95),
+                             threshold_reach=kw.pop("reach", 0.95), **kw)
     return plausibility.gate(p, coarseness=2.0, band_mm=3.0, name="bone")
 
 
@@ -746,11 +747,19 @@ def test_merged_bone_fails_as_fused_only_when_it_is_a_neighbours():
     assert "took in" not in shape_text(SimpleNamespace(plausibility=fused))
 
 
-def test_no_ct_edge_fails():
+def test_thresholds_above_the_cortex_fail_and_a_faint_cortex_alone_does_not():
+    """The gate is on the border the CT shows that the thresholds reach (thresholds above
+    the cortex), not on the refinement's edges: a thin cortex on thick slices gives the
+    refinement little to move to (the real 3 mm sacrum 0.45) and is no threshold problem."""
     shape = (40, 40, 40)
     label = _ball(shape, (20, 20, 20), 10)
-    p = _measure(label, label, edge=0.1)
-    assert not p.ok and "edge" in " ".join(p.problems)
+    p = _measure(label, label, edge=0.95, reach=0.3)
+    assert not p.ok and "reaches HT under only 30 %" in " ".join(p.problems)
+    assert p.bounds["threshold_reach_min"] == plausibility.MIN_THRESHOLD_REACH
+    p = _measure(label, label, edge=0.3, reach=0.9)
+    assert p.ok, p.problems
+    p = _measure(label, label, edge=0.9, reach=float("nan"))  # not measured: no gate
+    assert p.ok, p.problems
 
 
 # ---------------------------------------------------------------------------------- distances
@@ -1405,7 +1414,7 @@ def test_the_threshold_advice_follows_where_the_thresholds_came_from():
     """Too little of the bone selected: the user's own H0/HT can go back to the estimate; when
     they were estimated already, the advice is to set them lower (not "use automatic ones")."""
     for missing, edge in ((0.4, 0.95), (0.0, 0.1)):
-        measures = dict(missing_fraction=missing, edge_support=edge)
+        measures = dict(missing_fraction=missing, threshold_reach=edge)
         own = plausibility.gate(plausibility.Plausibility(**measures), coarseness=3.0,
                                 band_mm=3.0, name="L4")
         auto = plausibility.gate(plausibility.Plausibility(**measures), coarseness=3.0,

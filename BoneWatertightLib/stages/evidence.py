@@ -92,12 +92,15 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
     evidence : (n,) uint8 array
     confidence : (n,) float32 array
     summary : dict
-        Area (mm^2) and fraction of the surface per class, and ``thickened_plate_mm2``: the
-        thin-plate area whose slab was given more than the CT's estimated thickness.
+        Area (mm^2) and fraction of the surface per class, ``thickened_plate_mm2``: the
+        thin-plate area whose slab was given more than the CT's estimated thickness, and
+        ``threshold_reach`` (:func:`_threshold_reach`): how much of the border the CT shows
+        the thresholds select (the plausibility gate's measure).
     """
     n = len(vertices)
     tolerance = max(EDGE_TOLERANCE_MM, spacing, EDGE_TOLERANCE_RESOLUTION * resolution)
     offsets = np.zeros(0)
+    shows = reaches = None
     evidence = np.full(n, LABEL_ONLY, np.uint8)
     confidence = np.zeros(n, np.float32)
     normals = None
@@ -112,6 +115,9 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
                                                         soft + min_contrast, level, min_contrast,
                                                         profiles=profiles)
         edge = ok & (np.abs(t_cross) <= tolerance)
+        # Where the profile shows the bone's edge, does its cortex reach HT (the thresholds
+        # select that border)? The profile's brightest sample near the vertex decides.
+        shows, reaches = ok, ok & (profiles[4] >= ht)
         offsets = np.abs(t_cross[ok])
         full = reference if np.isfinite(reference) and reference > 0 else np.nan
         evidence[edge] = EDGE
@@ -134,6 +140,7 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
             confidence[on] = np.clip(c, 0.0, 1.0)
             thin = plates.thickness[j] < plates.model[j]
             thickened[np.flatnonzero(on)[thin]] = True
+    near = np.zeros(n, bool)
     if others_distance is not None:
         near = sample_field(others_distance, vertices - others_origin, spacing,
                             cval=1e3) <= free_mm
@@ -165,8 +172,20 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
                "edge_offset_mm": ({"p50": float(np.percentile(offsets, 50)),
                                    "p90": float(np.percentile(offsets, 90))}
                                   if offsets.size else None),
-               "classes": {i: name for i, name in enumerate(CLASSES)}}
+               "classes": {i: name for i, name in enumerate(CLASSES)},
+               "threshold_reach": _threshold_reach(area, shows, reaches, ~near & ~on_cap, ht)}
     return evidence, confidence, summary
+
+
+def _threshold_reach(area, shows, reaches, free, ht) -> dict | None:
+    """Of the free surface (away from other bones and caps) whose CT profile shows the
+    bone's edge, the area and the fraction of it whose cortex reaches HT (0 when no edge is
+    shown); None when no CT was sampled."""
+    if shows is None:
+        return None
+    shown = float(area[shows & free].sum())
+    return {"edge_area_mm2": shown, "free_area_mm2": float(area[free].sum()), "ht_hu": float(ht),
+            "fraction": float(area[reaches & free].sum() / shown) if shown > 0 else 0.0}
 
 
 def evidence_warnings(name: str, summary: dict, min_thickness: float) -> list:
