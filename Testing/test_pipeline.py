@@ -472,6 +472,33 @@ def test_remesh_drops_a_join_that_would_add_a_tunnel():
     assert fusion.info["joined_pieces"] == 0 and fusion.info["join_dropped_mm3"] > 40.0
 
 
+def test_remesh_joins_the_pieces_that_add_no_tunnel_and_drops_the_others():
+    """Two missed pieces of the solid: a rod (a process, below the ball) and a handle (posts
+    and a bar above it, lace of a plate): joined together they add a tunnel; one at a time
+    the rod is joined and the handle alone is left out, each reported (before, one piece's
+    tunnel dropped both: the 3 mm sacrum's tip, 10 mm)."""
+    from BoneWatertightLib.stages.poisson import Fusion, surface_genus
+
+    h = 0.5
+    n = 72
+    g = (np.arange(n) - (n - 1) / 2) * h
+    zz, yy, xx = np.meshgrid(g, g, g, indexing="ij")
+    r = np.sqrt(xx ** 2 + yy ** 2 + zz ** 2)
+    post = (np.hypot(np.abs(xx) - 5.0, yy) <= 1.5) & (zz > 0) & (zz <= 14.0)
+    bar = (np.hypot(yy, zz - 13.0) <= 1.5) & (np.abs(xx) <= 6.5)
+    rod = (np.hypot(xx, yy) <= 1.5) & (zz < 0) & (zz >= -16.0)
+    solid = (r <= 8.5) | post | bar | rod
+    fusion = Fusion(label_origin=np.array([g[0]] * 3), label_spacing=h, solid=solid,
+                    solid_reach_mm=2.0)
+    out = remesh(sphere_mesh(8.0, 0.5), 1.0, fusion=fusion)
+    info = fusion.info
+    assert surface_genus(out) == 0
+    assert out.vertices[:, 2].min() < -13.0 and out.vertices[:, 2].max() < 9.0
+    assert info["joined_pieces"] == 1 and info["joined_bone_mm3"] > 40.0
+    assert info["join_dropped_mm3"] > 40.0 and info["join_dropped_reach_mm"] > 3.0
+    assert fusion.dropped_far[2] > 9.0 and fusion.joined_far[2] < -9.0
+
+
 def _u_with_a_plate(ct_mm=3.0, fine=0.25):
     """A bone shaped as a U of thick bars (12 mm square, cortex 1.5 mm) in the x-y plane with a
     1.2 mm plate between its arms (the middle of an iliac wing or a scapular blade), imaged as

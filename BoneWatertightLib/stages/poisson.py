@@ -424,6 +424,12 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         out = _contour_fused(joined, lo, h, fusion, smooth_iterations)
         if plain is not None and (out is None
                                   or surface_genus(out) > surface_genus(plain)):
+            # One piece's tunnel drops only that piece: a detached tip beside the lace of a
+            # plate elsewhere is still joined.
+            out = _join_piece_by_piece(occ, joined, surface_genus(plain), lo, h, fusion,
+                                       smooth_iterations, before, smoothed)
+        if plain is not None and (out is None
+                                  or surface_genus(out) > surface_genus(plain)):
             dropped = fusion.info.get("joined_bone_mm3", 0.0)
             reach = fusion.info.get("joined_reach_mm", 0.0)
             fusion.info, fusion.fill_mask = plain_state
@@ -468,6 +474,55 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
     sizes = np.bincount(lab.ravel())
     sizes[0] = 0
     return lab == int(np.argmax(sizes))
+
+
+# At most this many pieces of a join that adds a tunnel are tried one by one (largest first),
+# each one more contour of the remesh grid.
+JOIN_PIECES_TRIED = 6
+
+
+def _join_piece_by_piece(occ: np.ndarray, joined: np.ndarray, genus: int, lo, h: float,
+                         fusion: Fusion, smooth_iterations: int, before: dict,
+                         smoothed: np.ndarray) -> Optional[Surface]:
+    """The contour of ``occ`` with those 26-connected pieces of ``joined & ~occ`` that, added
+    one at a time (largest first) to the pieces kept so far, leave at most ``genus`` tunnels;
+    None when none does. ``fusion.info`` (reset to ``before`` for each trial), ``fill_mask``,
+    ``joined_far`` and ``dropped_far`` are those of the surface returned, with the pieces left
+    out as ``join_dropped_mm3`` / ``join_dropped_reach_mm``."""
+    from ..mesh.distance import distance_outside
+
+    pieces, n = ndimage.label(joined & ~occ, structure=np.ones((3, 3, 3), bool))
+    if n < 2:
+        return None
+    sizes = np.bincount(pieces.ravel(), minlength=n + 1)
+    order = [int(i) for i in np.argsort(-sizes[1:])[:JOIN_PIECES_TRIED] + 1]
+    kept, out, state = np.zeros(n + 1, bool), None, None
+    for i in order:
+        trial = kept.copy()
+        trial[i] = True
+        fusion.info, fusion.fill_mask = dict(before), None
+        surface = _contour_fused(occ | trial[pieces], lo, h, fusion, smooth_iterations)
+        if surface is not None and surface_genus(surface) <= genus:
+            kept, out, state = trial, surface, (dict(fusion.info), fusion.fill_mask)
+    if out is None:
+        return None
+    fusion.info, fusion.fill_mask = state
+    dist = distance_outside(_largest_component(smoothed >= 0.5), h)
+
+    def farthest(mask):
+        if not mask.any():
+            return 0.0, None
+        k = int(np.argmax(np.where(mask, dist, -1.0)))
+        return (float(dist.flat[k]),
+                np.array(np.unravel_index(k, mask.shape)[::-1], np.float64) * h
+                + np.asarray(lo, np.float64))
+
+    mine, left = kept[pieces], (pieces > 0) & ~kept[pieces]
+    (reach_in, fusion.joined_far), (reach_out, fusion.dropped_far) = farthest(mine), farthest(left)
+    fusion.info.update(joined_bone_mm3=float(mine.sum() * h ** 3), joined_pieces=int(kept.sum()),
+                       joined_reach_mm=reach_in, join_dropped_mm3=float(left.sum() * h ** 3),
+                       join_dropped_reach_mm=reach_out)
+    return out
 
 
 def _join_missed_bone(occ: np.ndarray, lo, h: float, fusion: Fusion,
