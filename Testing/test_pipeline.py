@@ -452,44 +452,41 @@ def test_remesh_joins_a_process_whose_thin_poisson_neck_the_smoothing_cuts():
     assert remesh(poisson_like, 1.0).vertices[:, 2].max() < 8.5   # without the solid: lost
 
 
+def _ball_with_a_handle(n, h=0.5):
+    """A ball's solid (r 8.5 mm, centred on a grid of n^3 steps h) with a handle above it (a bar
+    6 mm beyond the ball on two posts: lace of a thin plate, not a process); the grid's (z, y,
+    x) coordinates (mm) and its first node."""
+    g = (np.arange(n) - (n - 1) / 2) * h
+    zz, yy, xx = np.meshgrid(g, g, g, indexing="ij")
+    post = (np.hypot(np.abs(xx) - 5.0, yy) <= 1.5) & (zz > 0) & (zz <= 14.0)
+    bar = (np.hypot(yy, zz - 13.0) <= 1.5) & (np.abs(xx) <= 6.5)
+    solid = (np.sqrt(xx ** 2 + yy ** 2 + zz ** 2) <= 8.5) | post | bar
+    return solid, (zz, yy, xx), np.array([g[0]] * 3)
+
+
 def test_remesh_drops_a_join_that_would_add_a_tunnel():
-    """A handle of the solid (a bar 6 mm beyond the ball, joined to it by two posts: lace of
-    a thin plate, not a process) would make a tunnel: the join is dropped and reported."""
+    """A handle of the solid would make a tunnel: the join is dropped and reported."""
     from BoneWatertightLib.stages.poisson import Fusion, surface_genus
 
     h = 0.5
-    n = 64
-    g = (np.arange(n) - (n - 1) / 2) * h
-    zz, yy, xx = np.meshgrid(g, g, g, indexing="ij")
-    r = np.sqrt(xx ** 2 + yy ** 2 + zz ** 2)
-    post = (np.hypot(np.abs(xx) - 5.0, yy) <= 1.5) & (zz > 0) & (zz <= 14.0)
-    bar = (np.hypot(yy, zz - 13.0) <= 1.5) & (np.abs(xx) <= 6.5)
-    solid = (r <= 8.5) | post | bar
-    fusion = Fusion(label_origin=np.array([g[0]] * 3), label_spacing=h, solid=solid,
-                    solid_reach_mm=2.0)
+    solid, _, origin = _ball_with_a_handle(64, h)
+    fusion = Fusion(label_origin=origin, label_spacing=h, solid=solid, solid_reach_mm=2.0)
     out = remesh(sphere_mesh(8.0, 0.5), 1.0, fusion=fusion)
     assert surface_genus(out) == 0 and out.vertices[:, 2].max() < 9.0
     assert fusion.info["joined_pieces"] == 0 and fusion.info["join_dropped_mm3"] > 40.0
 
 
 def test_remesh_joins_the_pieces_that_add_no_tunnel_and_drops_the_others():
-    """Two missed pieces of the solid: a rod (a process, below the ball) and a handle (posts
-    and a bar above it, lace of a plate): joined together they add a tunnel; one at a time
+    """Two missed pieces of the solid: a rod (a process, below the ball) and the handle above
+    it: joined together they add a tunnel; one at a time
     the rod is joined and the handle alone is left out, each reported (before, one piece's
     tunnel dropped both: the 3 mm sacrum's tip, 10 mm)."""
     from BoneWatertightLib.stages.poisson import Fusion, surface_genus
 
     h = 0.5
-    n = 72
-    g = (np.arange(n) - (n - 1) / 2) * h
-    zz, yy, xx = np.meshgrid(g, g, g, indexing="ij")
-    r = np.sqrt(xx ** 2 + yy ** 2 + zz ** 2)
-    post = (np.hypot(np.abs(xx) - 5.0, yy) <= 1.5) & (zz > 0) & (zz <= 14.0)
-    bar = (np.hypot(yy, zz - 13.0) <= 1.5) & (np.abs(xx) <= 6.5)
-    rod = (np.hypot(xx, yy) <= 1.5) & (zz < 0) & (zz >= -16.0)
-    solid = (r <= 8.5) | post | bar | rod
-    fusion = Fusion(label_origin=np.array([g[0]] * 3), label_spacing=h, solid=solid,
-                    solid_reach_mm=2.0)
+    solid, (zz, yy, xx), origin = _ball_with_a_handle(72, h)
+    solid |= (np.hypot(xx, yy) <= 1.5) & (zz < 0) & (zz >= -16.0)  # the rod
+    fusion = Fusion(label_origin=origin, label_spacing=h, solid=solid, solid_reach_mm=2.0)
     out = remesh(sphere_mesh(8.0, 0.5), 1.0, fusion=fusion)
     info = fusion.info
     assert surface_genus(out) == 0
