@@ -77,8 +77,9 @@ REFINE_SIGMA_MIN_VOXELS = 0.5
 BAND_COARSENESS = 1.0
 # Bone that M0 left out (joining it added a tunnel) is warned about when it lies farther than
 # this outside the finished surface: the thin-plate bones' bound on the largest error (issue 18:
-# max <= 5 mm to the reference); nearer, the deformation and the refinement hold it.
-LEFT_OUT_WARN_MM = 5.0
+# max <= 5 mm to the reference); nearer, the deformation and the refinement hold it. Pieces
+# farther than it are joined one by one where they add no tunnel (poisson.remesh).
+LEFT_OUT_WARN_MM = _poisson.JOIN_TRIAL_REACH_MM
 # M0 is cut back out of what is neither bone nor segment: farther than CARVE_SEGMENT_COARSENESS
 # x coarseness + d from the (trusted) segment and farther than CARVE_BONE_MM + d from the bone
 # at HT (the segment's own uncertainty and the CT's partial-volume foot stay untouched).

@@ -476,28 +476,35 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
     return lab == int(np.argmax(sizes))
 
 
-# At most this many pieces of a join that adds a tunnel are tried one by one (largest first),
-# each one more contour of the remesh grid.
+# The pieces of a join that adds a tunnel reaching farther than JOIN_TRIAL_REACH_MM beyond M0
+# are tried one by one (largest first, at most JOIN_PIECES_TRIED: each costs a contour of the
+# remesh grid, 1-2 s on a 0.7 x 2.5 mm hip bone); nearer ones are left out with the rest, as
+# their loss is within the thin-plate bones' bound on the largest error (issue 18: 5 mm; the
+# pipeline warns about left-out bone beyond it).
+JOIN_TRIAL_REACH_MM = 5.0
 JOIN_PIECES_TRIED = 6
 
 
 def _join_piece_by_piece(occ: np.ndarray, joined: np.ndarray, genus: int, lo, h: float,
                          fusion: Fusion, smooth_iterations: int, before: dict,
                          smoothed: np.ndarray) -> Optional[Surface]:
-    """The contour of ``occ`` with those 26-connected pieces of ``joined & ~occ`` that, added
-    one at a time (largest first) to the pieces kept so far, leave at most ``genus`` tunnels;
-    None when none does. ``fusion.info`` (reset to ``before`` for each trial), ``fill_mask``,
-    ``joined_far`` and ``dropped_far`` are those of the surface returned, with the pieces left
-    out as ``join_dropped_mm3`` / ``join_dropped_reach_mm``."""
+    """The contour of ``occ`` with those 26-connected pieces of ``joined & ~occ`` that reach
+    farther than JOIN_TRIAL_REACH_MM beyond it and, added one at a time (largest first) to the
+    pieces kept so far, leave at most ``genus`` tunnels; None when none does.
+    ``fusion.info`` (reset to ``before`` for each trial), ``fill_mask``, ``joined_far`` and
+    ``dropped_far`` are those of the surface returned, with the pieces left out as
+    ``join_dropped_mm3`` / ``join_dropped_reach_mm``."""
     from ..mesh.distance import distance_outside
 
     pieces, n = ndimage.label(joined & ~occ, structure=np.ones((3, 3, 3), bool))
     if n < 2:
         return None
-    sizes = np.bincount(pieces.ravel(), minlength=n + 1)
-    order = [int(i) for i in np.argsort(-sizes[1:])[:JOIN_PIECES_TRIED] + 1]
+    dist = distance_outside(_largest_component(smoothed >= 0.5), h)
+    reach = ndimage.maximum(dist, pieces, index=np.arange(1, n + 1))
+    sizes = np.bincount(pieces.ravel(), minlength=n + 1)[1:]
+    order = [int(i) + 1 for i in np.argsort(-sizes) if reach[i] > JOIN_TRIAL_REACH_MM]
     kept, out, state = np.zeros(n + 1, bool), None, None
-    for i in order:
+    for i in order[:JOIN_PIECES_TRIED]:
         trial = kept.copy()
         trial[i] = True
         fusion.info, fusion.fill_mask = dict(before), None
@@ -507,7 +514,6 @@ def _join_piece_by_piece(occ: np.ndarray, joined: np.ndarray, genus: int, lo, h:
     if out is None:
         return None
     fusion.info, fusion.fill_mask = state
-    dist = distance_outside(_largest_component(smoothed >= 0.5), h)
 
     def farthest(mask):
         if not mask.any():
