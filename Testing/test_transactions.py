@@ -8,6 +8,7 @@ processes (SIGTERM, SIGHUP, SIGINT, and ``kill -9`` followed by a clean run).
 
 import csv
 import os
+import re
 import resource
 import signal
 import subprocess
@@ -410,15 +411,18 @@ def start_driver(tmp_path, args):
 
 
 def wait_for_lines(process, prefix, count, seconds=240):
-    """Read stdout until ``count`` lines start with ``prefix``."""
+    """Read stdout until ``prefix`` and the word after it were printed ``count`` times; each
+    as the line "``prefix`` word". Found anywhere in a line: the workers and the batch share
+    the pipe, and a clean-clone run (stop 47) read one of the two workers' lines and then the
+    batch's normal end - as when a line lands after another process's unterminated output."""
     found = []
+    pattern = re.compile(re.escape(prefix) + r" \S+")
 
     def read():
         for line in process.stdout:
-            if line.startswith(prefix):
-                found.append(line)
-                if len(found) >= count:
-                    return
+            found.extend(match + "\n" for match in pattern.findall(line))
+            if len(found) >= count:
+                return
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
