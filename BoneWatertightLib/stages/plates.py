@@ -222,7 +222,7 @@ def find_plates(ct: np.ndarray, region: np.ndarray, bone: np.ndarray, resolved: 
     native = np.asarray(native_spacing, np.float64)
     if not region.any():
         return empty_plates(d)
-    sigma_mm = max(d, PLATE_SIGMA_FRACTION * float(native.min()))
+    sigma_mm = ridge_sigma_mm(d, native)
     sm = smooth_ct(ct, d, native) if smoothed is None else smoothed
     noise = soft_tissue_noise(sm, region | bone, soft)
     min_contrast = min(max_contrast, PLATE_NOISE_FACTOR * noise)
@@ -302,13 +302,18 @@ def soft_tissue_noise(sm: np.ndarray, exclude: np.ndarray, soft: float) -> float
     return float(1.4826 * np.median(np.abs(v - np.median(v))))
 
 
+def ridge_sigma_mm(spacing: float, native_spacing) -> float:
+    """The ridges' scale (mm): max(working spacing, PLATE_SIGMA_FRACTION x the CT's finest
+    spacing) - the scale of the blur a plate has already had. ``native_spacing``: the CT's own
+    spacing (x, y, z) in mm."""
+    return max(float(spacing), PLATE_SIGMA_FRACTION * float(np.min(native_spacing)))
+
+
 def smooth_ct(ct: np.ndarray, spacing: float, native_spacing) -> np.ndarray:
-    """The CT (z, y, x) smoothed at the ridges' scale: a Gaussian of sigma = max(working
-    spacing, PLATE_SIGMA_FRACTION x the CT's finest spacing), float32 (the scale of the blur a
-    plate has already had). ``native_spacing``: the CT's own spacing (x, y, z) in mm."""
+    """The CT (z, y, x) smoothed by a Gaussian at :func:`ridge_sigma_mm`, float32."""
     d = float(spacing)
-    sigma_mm = max(d, PLATE_SIGMA_FRACTION * float(np.min(native_spacing)))
-    return ndimage.gaussian_filter(np.asarray(ct, np.float32), sigma=sigma_mm / d, mode="nearest")
+    return ndimage.gaussian_filter(np.asarray(ct, np.float32),
+                                   sigma=ridge_sigma_mm(d, native_spacing) / d, mode="nearest")
 
 
 def _local_peaks(sm: np.ndarray) -> np.ndarray:
