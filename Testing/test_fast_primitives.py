@@ -352,3 +352,34 @@ def test_distance_near_is_the_whole_transform_where_it_is_compared_with_its_reac
     far[0, 0, 0] = True
     empty = np.zeros(shape, bool)
     assert np.isinf(_distance_near(empty, far, reach, spacing)).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_plugs_grown_and_smoothed_on_their_box_equal_the_whole_grid(seed):
+    # _fill_tunnels grows and smooths each plug on its box only: the values must be those of
+    # the whole grid's dilation and Gaussian, bit for bit, also where a plug meets the border.
+    from BoneWatertightLib.stages import poisson
+
+    rng = np.random.default_rng(seed)
+    shape = (23, 31, 27)
+    within = rng.random(shape) < 0.7
+    field = rng.random(shape).astype(np.float32)
+    for corner in (False, True):
+        plug = np.zeros(shape, bool)
+        lo = [0, 0, 0] if corner else [int(rng.integers(3, 10)) for _ in shape]
+        plug[lo[0]:lo[0] + 4, lo[1]:lo[1] + 6, lo[2]:lo[2] + 3] = rng.random((4, 6, 3)) < 0.6
+        whole = ndimage.binary_dilation(plug, structure=np.ones((3, 3, 3), bool),
+                                        iterations=2) & within
+        assert np.array_equal(poisson._grown_into(plug, within, 2), whole)
+        box = ndimage.find_objects(plug.astype(np.int32))[0]
+        assert np.array_equal(poisson._grown_into(plug, within, 2, box=box), whole)
+        ramp = ndimage.gaussian_filter(plug.astype(np.float32), sigma=poisson.REMESH_SMOOTH_SIGMA)
+        expected = np.maximum(field, np.minimum(1.0, 2.0 * ramp))
+        raised = field.copy()
+        poisson._raise_to_ramp(raised, plug)
+        assert np.array_equal(raised, expected)
+    empty = np.zeros(shape, bool)
+    assert not poisson._grown_into(empty, within, 2).any()
+    same = field.copy()
+    poisson._raise_to_ramp(same, empty)
+    assert np.array_equal(same, field)

@@ -24,6 +24,7 @@ from scipy import ndimage
 from ..errors import DependencyError, ReconstructionError
 from ..mesh.operators import tangential_relax
 from ..mesh.surface import Surface, enclosed_volume, from_polydata, inside_mask
+from .prepare import bbox_slices
 from .threshold import fill_holes
 
 # Sigma (voxels) of the smoothed mask whose gradient gives the oriented normals.
@@ -46,6 +47,9 @@ SINC_PASS_BAND = 0.1
 # contours per surface; plugs of at least FILL_MIN_VOXELS grid voxels.
 FILL_MAX_TRIALS = 8
 FILL_MIN_VOXELS = 8
+# A plug is grown this many grid steps into its source before it is tried (to meet the
+# hole's rim).
+PLUG_GROWTH_STEPS = 2
 # The segment's plugs are tried first as the segment's middle sheet: depth within this many
 # grid steps of the deepest nearby (:func:`_label_sheet`); then whole.
 SHEET_DEPTH_STEPS = 1.5
@@ -732,6 +736,39 @@ def _narrow_tunnel_plugs(field_zyx: np.ndarray, h: float, radius_mm: float) -> l
     return [m for _, _, m in sorted(found, key=lambda t: (t[0], t[1]))]
 
 
+def _gaussian_reach(sigma: float, truncate: float = 4.0) -> int:
+    """Voxels a Gaussian filter of ``sigma`` (scipy's ``truncate``) reaches from a voxel."""
+    return int(truncate * float(sigma) + 0.5)
+
+
+def _raise_to_ramp(field_zyx: np.ndarray, add: np.ndarray) -> None:
+    """``field_zyx`` raised in place to min(1, 2 x ``add`` smoothed by REMESH_SMOOTH_SIGMA) (a
+    soft plug). Computed on ``add``'s box grown by the kernel's reach: the same values as over
+    the whole grid, where the ramp is zero farther out (and the field, never negative, stays)."""
+    if not add.any():
+        return
+    sl = bbox_slices(add, _gaussian_reach(REMESH_SMOOTH_SIGMA))
+    ramp = ndimage.gaussian_filter(add[sl].astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
+    np.maximum(field_zyx[sl], np.minimum(1.0, 2.0 * ramp), out=field_zyx[sl])
+
+
+def _grown_into(mask: np.ndarray, within: np.ndarray, steps: int, box=None) -> np.ndarray:
+    """``mask`` dilated by ``steps`` steps of the 3 x 3 x 3 cube, within ``within``: computed
+    on the mask's bounding box (``box``: its slices, when known) grown by ``steps`` - what a
+    dilation of the whole grid gives, for the cost of the box."""
+    if box is None:
+        if not mask.any():
+            return np.zeros(mask.shape, bool)
+        sl = bbox_slices(mask, steps)
+    else:
+        sl = tuple(slice(max(0, b.start - steps), min(n, b.stop + steps))
+                   for b, n in zip(box, mask.shape))
+    out = np.zeros(mask.shape, bool)
+    out[sl] = ndimage.binary_dilation(mask[sl], structure=np.ones((3, 3, 3), bool),
+                                      iterations=steps) & within[sl]
+    return out
+
+
 def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fusion,
                   smooth_iterations: int) -> Surface:
     """Where the contour has more tunnels than the segment, close them with the segment.
@@ -782,8 +819,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         trials += 1
         trial = field_zyx.copy()
         if soft:
-            ramp = ndimage.gaussian_filter(add.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
-            np.maximum(trial, np.minimum(1.0, 2.0 * ramp), out=trial)
+            _raise_to_ramp(trial, add)
         else:
             trial[add] = 1.0
         # the genus of the raw contour: smoothing and relaxing do not change it
@@ -818,17 +854,15 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
             return attempt(add, soft=True)
 
         if len(big) > 1:
-            every = ndimage.binary_dilation(np.isin(pieces, big), structure=np.ones((3, 3, 3), bool),
-                                            iterations=2) & source
-            if attempt_thin_first(every):
+            if attempt_thin_first(_grown_into(np.isin(pieces, big), source, PLUG_GROWTH_STEPS)):
                 kept += int(len(big))
                 size[big] = 0
+        boxes = ndimage.find_objects(pieces)
         for p in np.argsort(size)[::-1]:
             if size[p] < FILL_MIN_VOXELS or trials >= last_trial or genus <= goal:
                 break
-            grown = ndimage.binary_dilation(pieces == p, structure=np.ones((3, 3, 3), bool),
-                                            iterations=2) & source
-            if attempt_thin_first(grown):
+            if attempt_thin_first(_grown_into(pieces == p, source, PLUG_GROWTH_STEPS,
+                                              box=boxes[p - 1])):
                 kept += 1
         return kept
 
