@@ -329,13 +329,21 @@ def constants_of(*modules: types.ModuleType) -> dict:
 def summary_line(name: str, checks, distances: DistanceSummary, seconds: Optional[float],
                  n_vertices: int, n_faces: int, out: Optional[str] = None,
                  coordinate_system: Optional[str] = None,
-                 picture_error: Optional[str] = None) -> str:
-    """'<name>: V vertices, F faces, checks passed (...), distance ..., T s -> out (LPS)'."""
+                 picture_error: Optional[str] = None,
+                 segment_genus: Optional[int] = None) -> str:
+    """'<name>: V vertices, F faces, checks passed (...), distance ..., T s -> out (LPS)';
+    with ``segment_genus`` (the segment's tunnels at its own resolution) where it differs from
+    the surface's: both counts (a foramen or canal closed, or a segment's lace left out)."""
     if getattr(checks, "ok", False):
         genus = getattr(checks, "genus", None)
+        if genus is None:
+            tunnels = ""
+        elif segment_genus is None or segment_genus == genus:
+            tunnels = f", genus {genus}"
+        else:
+            tunnels = f", genus {genus}: the segment has {segment_genus} at its resolution"
         state = ("checks passed (closed, manifold, "
-                 f"{getattr(checks, 'n_components', 1)} component"
-                 + ("" if genus is None else f", genus {genus}") + ")")
+                 f"{getattr(checks, 'n_components', 1)} component" + tunnels + ")")
     else:
         state = "CHECKS FAILED: " + "; ".join(map(str, getattr(checks, "problems", [])))
     text = f"{name + ': ' if name else ''}{n_vertices} vertices, {n_faces} faces, {state}"
@@ -394,7 +402,9 @@ def case_summary_line(report: CaseReport) -> str:
     out = report.output
     line = summary_line(report.segment_name, report.checks, report.distance_to_constraints_mm,
                         report.timings_s.total, out.n_vertices, out.n_faces, out.path,
-                        out.coordinate_system, out.picture_error)
+                        out.coordinate_system, out.picture_error,
+                        segment_genus=getattr(getattr(report.pipeline, "plausibility", None),
+                                              "segment_genus", None))
     shape = shape_text(report.pipeline)
     return line + (f"; {shape}" if shape else "")
 

@@ -16,14 +16,20 @@ def summarize(result, name: str = "") -> str:
     report = result.report
     return summary_line(name, report.checks, report.distance_to_constraints_mm,
                         report.timings.total, result.surface.n_vertices,
-                        result.surface.n_faces)
+                        result.surface.n_faces, segment_genus=_segment_genus(report))
+
+
+def _segment_genus(report):
+    """The segment's tunnels at its own resolution (plausibility), or None."""
+    return getattr(getattr(report, "plausibility", None), "segment_genus", None)
 
 
 def bone_summary(bone) -> str:
     """One line per bone of a joint run: vertices, faces, checks, plausibility, cap, warnings."""
     report = bone.report
     text = summary_line(bone.name, report.checks, report.distance_to_constraints_mm, None,
-                        bone.surface.n_vertices, bone.surface.n_faces)
+                        bone.surface.n_vertices, bone.surface.n_faces,
+                        segment_genus=_segment_genus(report))
     p = report.plausibility
     if p is not None:
         state = "plausible" if p.ok else "IMPLAUSIBLE"
