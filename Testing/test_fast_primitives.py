@@ -383,3 +383,43 @@ def test_plugs_grown_and_smoothed_on_their_box_equal_the_whole_grid(seed):
     same = field.copy()
     poisson._raise_to_ramp(same, empty)
     assert np.array_equal(same, field)
+
+
+def _torus_faces(n, m):
+    """Faces (2 n m, 3) of an n x m torus grid (genus 1; vertex i * m + j)."""
+    i, j = np.meshgrid(np.arange(n), np.arange(m), indexing="ij")
+    a = i * m + j
+    b = ((i + 1) % n) * m + j
+    c = ((i + 1) % n) * m + (j + 1) % m
+    d = i * m + (j + 1) % m
+    return np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                           np.stack([a, c, d], -1).reshape(-1, 3)])
+
+
+def test_surface_genus_counts_as_the_plain_euler_characteristic():
+    # poisson.surface_genus counts vertices and edges on one sorted key array: the same
+    # numbers as np.unique's, also on a surface with unused vertices or a non-manifold edge.
+    from test_checks import icosphere
+
+    from BoneWatertightLib.mesh import Surface
+    from BoneWatertightLib.stages.poisson import surface_genus
+
+    def plain(f):
+        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        chi = len(np.unique(f)) - len(np.unique(edges, axis=0)) + len(f)
+        return max(0, (2 - chi) // 2)
+
+    v, f = icosphere(2)
+    torus = _torus_faces(12, 7)
+    two_tori = np.concatenate([torus, torus + 84])  # chi 0: (2 - chi) / 2 = 1
+    shared_edge = np.concatenate([f, f[:2] + len(v)])  # two stray faces: an open piece
+    unused = f + 5                                       # vertices 0-4 unused
+    cases = {"sphere": (f, 0), "torus": (torus, 1), "two tori": (two_tori, 1),
+             "open piece": (shared_edge, None), "unused": (unused, 0)}
+    for name, (faces, expected) in cases.items():
+        n = int(faces.max()) + 1
+        got = surface_genus(Surface(np.zeros((n, 3)), faces))
+        assert got == plain(faces), name
+        if expected is not None:
+            assert got == expected, name
+    assert surface_genus(Surface(np.zeros((0, 3)), np.zeros((0, 3), np.int64))) == 0

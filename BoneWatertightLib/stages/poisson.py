@@ -298,9 +298,14 @@ def surface_genus(surface: Surface) -> int:
     f = np.asarray(surface.faces, np.int64)
     if not len(f):
         return 0
-    edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    n_edges = len(np.unique(edges[:, 0] * (int(f.max()) + 1) + edges[:, 1]))
-    chi = len(np.unique(f)) - n_edges + len(f)
+    # Distinct vertices and undirected edges counted on one sorted key array (the fill's and
+    # the join's trials count a contour's tunnels dozens of times: np.unique took 10 x longer).
+    a, b = f.ravel(), f[:, [1, 2, 0]].ravel()
+    keys = np.minimum(a, b) * (int(f.max()) + 1) + np.maximum(a, b)
+    keys.sort()
+    n_edges = int(np.count_nonzero(keys[1:] != keys[:-1])) + 1
+    n_vertices = int(np.count_nonzero(np.bincount(a)))
+    chi = n_vertices - n_edges + len(f)
     return max(0, (2 - chi) // 2)
 
 
