@@ -423,3 +423,18 @@ def test_surface_genus_counts_as_the_plain_euler_characteristic():
         if expected is not None:
             assert got == expected, name
     assert surface_genus(Surface(np.zeros((0, 3)), np.zeros((0, 3), np.int64))) == 0
+
+
+@pytest.mark.parametrize("steps", [1, 2, 4])
+def test_dilate_cube_is_the_iterated_binary_dilation(steps):
+    # threshold.dilate_cube (a separable maximum) replaces scipy's iterated dilation by the
+    # 3 x 3 x 3 cube: the same voxels, also at the border and for an empty mask.
+    from BoneWatertightLib.stages.threshold import dilate_cube
+
+    rng = np.random.default_rng(steps)
+    mask = rng.random((17, 23, 19)) < 0.01
+    mask[0, 0, 0] = mask[-1, 5, -1] = True
+    for m in (mask, np.zeros_like(mask)):
+        expected = ndimage.binary_dilation(m, structure=np.ones((3, 3, 3), bool),
+                                           iterations=steps)
+        assert np.array_equal(dilate_cube(m, steps), expected)

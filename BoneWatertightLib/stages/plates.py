@@ -33,6 +33,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from .threshold import dilate_cube
+
 # Ridge scale: Gaussian sigma = max(working spacing, PLATE_SIGMA_FRACTION x the CT's finest
 # spacing) - the scale of the blur the plate has already had.
 PLATE_SIGMA_FRACTION = 0.25
@@ -137,7 +139,7 @@ class Plates:
         ijk = ijk[inside]
         near[ijk[:, 2], ijk[:, 1], ijk[:, 0]] = True
         grow = int(np.ceil((0.5 * float(self.model.max()) + step) / step)) + 1
-        near = ndimage.binary_dilation(near, structure=np.ones((3, 3, 3), bool), iterations=grow)
+        near = dilate_cube(near, grow)
         zyx = np.argwhere(near)
         pts = zyx[:, ::-1] * step + origin
         j, along, lateral = self.offsets(pts, 0.0)
@@ -248,7 +250,7 @@ def find_plates(ct: np.ndarray, region: np.ndarray, bone: np.ndarray, resolved: 
     pieces, n_pieces = ndimage.label(lab, structure=np.ones((3, 3, 3), bool))
     piece = pieces[idx[:, 0], idx[:, 1], idx[:, 2]]
     size = np.bincount(piece, minlength=n_pieces + 1)
-    near_bone = ndimage.binary_dilation(bone, structure=np.ones((3, 3, 3), bool), iterations=2)
+    near_bone = dilate_cube(bone, 2)
     touching = np.zeros(n_pieces + 1, bool)
     touching[np.unique(piece[near_bone[idx[:, 0], idx[:, 1], idx[:, 2]]])] = True
     good = touching[piece] & (size[piece] >= PLATE_MIN_POINTS)

@@ -25,7 +25,7 @@ from ..errors import DependencyError, ReconstructionError
 from ..mesh.operators import tangential_relax
 from ..mesh.surface import Surface, enclosed_volume, from_polydata, inside_mask
 from .prepare import bbox_slices
-from .threshold import fill_holes
+from .threshold import dilate_cube, fill_holes
 
 # Sigma (voxels) of the smoothed mask whose gradient gives the oriented normals.
 NORMAL_MASK_SIGMA_VOXELS = 1.5
@@ -769,8 +769,7 @@ def _grown_into(mask: np.ndarray, within: np.ndarray, steps: int, box=None) -> n
         sl = tuple(slice(max(0, b.start - steps), min(n, b.stop + steps))
                    for b, n in zip(box, mask.shape))
     out = np.zeros(mask.shape, bool)
-    out[sl] = ndimage.binary_dilation(mask[sl], structure=np.ones((3, 3, 3), bool),
-                                      iterations=steps) & within[sl]
+    out[sl] = dilate_cube(mask[sl], steps) & within[sl]
     return out
 
 

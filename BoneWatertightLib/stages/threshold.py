@@ -186,13 +186,23 @@ def erosions_to_separate(ct: np.ndarray, owner: np.ndarray, k: int, spacing: flo
     return None
 
 
+def dilate_cube(mask: np.ndarray, steps: int) -> np.ndarray:
+    """``mask`` dilated by ``steps`` steps of the 3 x 3 x 3 cube, nothing beyond the border: a
+    separable maximum over a cube of 2 ``steps`` + 1 voxels - the voxels of scipy's iterated
+    binary dilation, at a cost that does not grow with ``steps``. (z, y, x) bool."""
+    if steps <= 0:
+        return mask.astype(bool, copy=True)
+    return ndimage.maximum_filter(np.asarray(mask, bool).view(np.uint8), size=2 * int(steps) + 1,
+                                  mode="constant", cval=0).astype(bool)
+
+
 def near(mask: np.ndarray, spacing: float, radius_mm: float, step_mm: float = 2.0) -> np.ndarray:
     """Voxels within about ``radius_mm`` of ``mask`` (never fewer: computed on a coarse grid
     of ``step_mm`` blocks, so it errs on the generous side by up to a block)."""
     f = max(1, int(round(step_mm / spacing)))
     coarse = _block_any(mask, f)
     steps = int(np.ceil(radius_mm / (f * spacing))) + 1
-    grown = ndimage.binary_dilation(coarse, structure=np.ones((3, 3, 3), bool), iterations=steps)
+    grown = dilate_cube(coarse, steps)
     idx = [np.minimum(np.arange(s) // f, grown.shape[a] - 1) for a, s in enumerate(mask.shape)]
     return grown[np.ix_(*idx)]
 
