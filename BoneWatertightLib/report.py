@@ -397,14 +397,18 @@ def shape_text(pipeline) -> str:
     return ", ".join(parts)
 
 
+def segment_genus_of(pipeline) -> Optional[int]:
+    """The segment's tunnels at its own resolution (a pipeline report's plausibility), or None."""
+    return getattr(getattr(pipeline, "plausibility", None), "segment_genus", None)
+
+
 def case_summary_line(report: CaseReport) -> str:
     """The summary line of a case report."""
     out = report.output
     line = summary_line(report.segment_name, report.checks, report.distance_to_constraints_mm,
                         report.timings_s.total, out.n_vertices, out.n_faces, out.path,
                         out.coordinate_system, out.picture_error,
-                        segment_genus=getattr(getattr(report.pipeline, "plausibility", None),
-                                              "segment_genus", None))
+                        segment_genus=segment_genus_of(report.pipeline))
     shape = shape_text(report.pipeline)
     return line + (f"; {shape}" if shape else "")
 

@@ -7,7 +7,7 @@ the command line's own lines are :func:`BoneWatertightLib.report.case_summary_li
 
 from __future__ import annotations
 
-from ..report import summary_line
+from ..report import segment_genus_of, summary_line
 
 
 def summarize(result, name: str = "") -> str:
@@ -16,12 +16,7 @@ def summarize(result, name: str = "") -> str:
     report = result.report
     return summary_line(name, report.checks, report.distance_to_constraints_mm,
                         report.timings.total, result.surface.n_vertices,
-                        result.surface.n_faces, segment_genus=_segment_genus(report))
-
-
-def _segment_genus(report):
-    """The segment's tunnels at its own resolution (plausibility), or None."""
-    return getattr(getattr(report, "plausibility", None), "segment_genus", None)
+                        result.surface.n_faces, segment_genus=segment_genus_of(report))
 
 
 def bone_summary(bone) -> str:
@@ -29,7 +24,7 @@ def bone_summary(bone) -> str:
     report = bone.report
     text = summary_line(bone.name, report.checks, report.distance_to_constraints_mm, None,
                         bone.surface.n_vertices, bone.surface.n_faces,
-                        segment_genus=_segment_genus(report))
+                        segment_genus=segment_genus_of(report))
     p = report.plausibility
     if p is not None:
         state = "plausible" if p.ok else "IMPLAUSIBLE"
