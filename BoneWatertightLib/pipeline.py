@@ -645,6 +645,11 @@ def ownership_stage(run: _Run, ws: Workspace) -> None:
             contrast=max(th["cortex_hu"] - th["soft_tissue_hu"], 1.0),
             coarseness=ws.prep.coarseness, band_mm=ws.band,
             ct_resolution=float(np.prod(ws.prep.ct_spacing)) ** (1.0 / 3.0), progress=sub)
+        if ws.own.labels is not None:
+            # The segment as the CT corrected it (a copy): every later stage and the gate
+            # judge each bone against it.
+            ws.labels = ws.own.labels
+            ws.own.labels = None
 
 
 def bone_schedule(ws: Workspace, max_memory_gb: float) -> tuple:
@@ -1347,7 +1352,7 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
         plaus, box, segment = plausibility_of(run, ws, bone, verts, faces, phys, planes,
                                               edges=verts[evidence == _evidence.EDGE],
                                               reach=summary["threshold_reach"])
-    warnings = _plausibility_warnings(run, plaus)
+    warnings = _plausibility_warnings(run, plaus) + _relabelled_warnings(ws, bone.k)
     fusion = bone.fusion
     if not planes and fusion is not None and fusion.genus is not None \
             and int(fusion.label.sum()) == int(segment.sum()):
@@ -1509,6 +1514,23 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
     return plaus, box, seg_all[box]
 
 
+def _relabelled_warnings(ws: Workspace, k: int) -> list:
+    """Bone k's warnings for the parts of a segment the ownership gave to a neighbour
+    (ownership.info["relabelled"]): on both bones."""
+    out = []
+    for rec in ws.own.info.get("relabelled", []):
+        if k not in (rec["from"], rec["to"]):
+            continue
+        a, b = ws.name_of(rec["from"]), ws.name_of(rec["to"])
+        out.append(
+            f"{rec['label_ml']:.1f} ml of {a}'s segment lies in {b}'s bone: the CT joins it "
+            f"to {b} without a joint space ({b} took {100 * rec['taken_fraction']:.0f} % of "
+            f"its core when {a}'s label there was not trusted, {a} "
+            f"{100 * rec['kept_fraction']:.0f} %), so it was reconstructed as {b}'s. Check "
+            f"both segments there and correct {a}'s if the CT is right")
+    return out
+
+
 def _plausibility_warnings(run: _Run, plaus) -> list:
     """The gate's problems as an error (on_implausible = fail) or warnings, and its warnings."""
     warnings = []
@@ -1547,7 +1569,12 @@ def bone_report(run: _Run, ws: Workspace, bone: BoneWork, checks, phys, faces, d
                    "owned_voxels": int((own.owner == bone.k).sum()),
                    # its joint zone with unlabelled neighbours (a second flood ran without them)
                    "unlabelled_contact_voxels_unmarked": int(own.info.get(
-                       "unlabelled_contact_unmarked_by_label", {}).get(bone.k, 0))},
+                       "unlabelled_contact_unmarked_by_label", {}).get(bone.k, 0)),
+                   # parts of a segment the CT showed in a neighbour's bone (given to it)
+                   "segment_given_ml": round(sum(r["label_ml"] for r in own.info.get(
+                       "relabelled", []) if r["from"] == bone.k), 3),
+                   "segment_taken_ml": round(sum(r["label_ml"] for r in own.info.get(
+                       "relabelled", []) if r["to"] == bone.k), 3)},
         separation={"erosions_to_separate": sep,
                     "by": ("threshold" if sep == 0 else f"erosion ({sep} CT voxels)" if sep
                            else "competition at the CT's valley and the labels")},

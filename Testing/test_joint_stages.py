@@ -218,6 +218,55 @@ def test_unlabelled_bone_beyond_a_joint_stays_a_neighbour():
     assert (row[31:54] != 1).all()  # never bone 1 across the joint space
 
 
+def _block_in_the_next_body():
+    """Two bodies (cortex 1200, spongy 300) with a 4-voxel disc (70 HU) between them; label 1
+    holds body 1 and, like an AI label across the disc, a block deep in body 2, joined to the
+    rest of label 1 by a thin strand of label over the disc."""
+    ct, labels = _two_blocks(shift_label=0, gap=4)
+    ct[4:20, 4:20, 28:32] = 70.0
+    labels[6:18, 6:18, 36:50] = 1
+    labels[11:13, 11:13, 28:36] = 1
+    return ct, labels
+
+
+def test_a_label_block_inside_the_next_bone_is_given_to_it():
+    ct, labels = _block_in_the_next_body()
+    before = labels.copy()
+    kw = dict(h0=400.0, ht=200.0, theta_max=2500.0, soft=40.0, contrast=1160.0,
+              coarseness=1.0, band_mm=3.0)
+    own = ownership.compute_ownership(ct, labels, 2, 1.0, **kw)
+    assert (labels == before).all()  # the input is not modified
+    moved = own.info["relabelled"]
+    assert len(moved) == 1 and (moved[0]["from"], moved[0]["to"]) == (1, 2), moved
+    assert moved[0]["taken_fraction"] >= 0.9, moved
+    assert own.labels is not None and (own.labels[6:18, 6:18, 36:50] == 2).all()
+    # body 2 whole, body 1 untouched
+    assert (own.owner[6:18, 6:18, 33:53] == 2).all()
+    assert (own.owner[6:18, 6:18, 7:26] == 1).all()
+    # without the check, the block stays label 1's bone (what the label says)
+    plain = ownership.compute_ownership(ct, labels, 2, 1.0, check_misplaced=False, **kw)
+    assert plain.labels is None and (plain.owner[10:14, 10:14, 40:46] == 1).all()
+
+
+def test_a_label_part_joined_to_its_own_bone_stays_its_own(monkeypatch):
+    """Label 1 misses a slab of body 1 (x 19, 20: the CT shows bone there), so its core is
+    in two parts; the part beside the joint lies in body 2's region (a wide band), but the
+    CT joins it to body 1 and parts it from body 2 by the joint space: it stays body 1's."""
+    ct, labels = _two_blocks(shift_label=0, gap=2)
+    labels[:, :, 19:21] = 0
+    labels[11:13, 11:13, 19:21] = 1
+    floods = []
+    flood = ownership.flood_from_markers
+    monkeypatch.setattr(ownership, "flood_from_markers",
+                        lambda *a: floods.append(1) or flood(*a))
+    own = ownership.compute_ownership(ct, labels, 2, 1.0, h0=400.0, ht=200.0,
+                                      theta_max=2500.0, soft=40.0, contrast=1160.0,
+                                      coarseness=1.0, band_mm=6.0)
+    assert len(floods) == 2  # the part was tried (a trial flood beside the flood)
+    assert own.info["relabelled"] == [] and own.labels is None
+    assert (own.owner[6:18, 6:18, 21:28] == 1).all()
+
+
 @pytest.mark.parametrize("hidden", [False, True])
 def test_a_label_over_an_unlabelled_neighbours_rim_beyond_a_seen_joint_space(hidden):
     """A coarse label of bone 1 reaches across the joint space into the wall of an unlabelled
