@@ -144,8 +144,8 @@ SUPPORT_MIN_FRACTION = 0.3
 RIM_JOINT_FRACTION = 0.5
 # A label's core cut off from the rest of its core (a component other than its largest, of at
 # least MISPLACED_MIN_MM3 and of a ball as deep as the core: a smaller one is a speck the
-# erosion left where the label is barely thicker than twice the core depth) that lies mostly (MISPLACED_IN_REGION_FRACTION) in another label's
-# region is tried: without the label's markers in its part of the label, the flooding fills it
+# erosion left where the label is barely thicker than twice the core depth) that lies mostly
+# (MISPLACED_IN_REGION_FRACTION) in another label's region is tried: without the label's markers in its part of the label, the flooding fills it
 # from the neighbour's bone when the CT joins it to that bone without a joint space and parts it
 # from its own. When a labelled neighbour takes at least MISPLACED_TAKEN_FRACTION of it (and
 # more than the label), that part of the label is the neighbour's (see _misplaced_cores).
@@ -866,7 +866,9 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
             own = compute_ownership(ct, fixed, n, spacing, h0=h0, ht=ht, theta_max=theta_max,
                                     soft=soft, contrast=contrast, coarseness=coarseness,
                                     band_mm=band_mm, ct_resolution=ct_resolution,
-                                    progress=progress, check_misplaced=False)
+                                    progress=None if progress is None else
+                                    (lambda f, msg: progress(0.5 + 0.5 * f, msg)),
+                                    check_misplaced=False)
             own.labels = fixed
             own.info["relabelled"] = [rec for rec, _, _ in moved]
             return own
@@ -1230,8 +1232,8 @@ def _misplaced_cores(fg, levels, markers, labels, seg: _LabelParts, n: int, spac
                 continue
             # The territory on the candidate's box grown by the margin: label voxels whose
             # nearest core voxel of a is the candidate's.
-            box = tuple(slice(max(b.start - margin_vox, 0), min(b.stop + margin_vox, dim))
-                        for b, dim in zip(boxes[c - 1], core.shape))
+            box = tuple(slice(max(q.start - margin_vox, 0), min(q.stop + margin_vox, dim))
+                        for q, dim in zip(boxes[c - 1], core.shape))
             cbox = comp[box]
             _, idx = ndimage.distance_transform_edt(cbox == 0, return_indices=True)
             near = cbox[tuple(idx)] == c
