@@ -367,6 +367,13 @@ def shape_text(pipeline) -> str:
     if plaus is not None:
         parts.append(f"volume {plaus.surface_ml:.1f} ml (segment {plaus.segment_ml:.1f} ml, "
                      f"{100 * plaus.segment_inside_fraction:.0f} % of it inside)")
+    own = getattr(pipeline, "ownership", None) or {}
+    if own.get("segment_taken_ml"):
+        parts.append(f"the segment includes {own['segment_taken_ml']:.1f} ml of a neighbour's "
+                     "segment that lies in this bone")
+    if own.get("segment_given_ml"):
+        parts.append(f"{own['segment_given_ml']:.1f} ml of the segment lies in a neighbour's bone "
+                     "and went to it")
     if plaus is not None and getattr(plaus, "unsupported_pieces", 0):
         n = plaus.unsupported_pieces
         parts.append(f"left out {n} part{'s' if n > 1 else ''} of the segment that the CT shows "

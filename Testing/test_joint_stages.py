@@ -251,9 +251,12 @@ def test_a_label_block_inside_the_next_bone_is_given_to_it():
 def test_the_pipeline_reports_a_label_block_given_to_the_neighbour_on_both_bones():
     """Through reconstruct_many: the corrected segment is what both bones are judged against,
     and both reports say how much moved."""
+    from types import SimpleNamespace
+
     import SimpleITK as sitk
 
     from BoneWatertightLib.pipeline import reconstruct_many
+    from BoneWatertightLib.report import shape_text
 
     ct, labels = _block_in_the_next_body()
     ct = np.pad(ct, 6, constant_values=40.0)
@@ -268,6 +271,13 @@ def test_the_pipeline_reports_a_label_block_given_to_the_neighbour_on_both_bones
     assert lower.ownership["segment_taken_ml"] == upper.ownership["segment_given_ml"]
     for r in (upper, lower):
         assert any("of upper's segment lies in lower's bone" in w for w in r.warnings), r.warnings
+    # the summary line says what the segment volume beside the surface's now holds
+    assert (f"the segment includes {lower.ownership['segment_taken_ml']:.1f} ml of a neighbour's"
+            in shape_text(lower))
+    given = upper.ownership["segment_given_ml"]
+    assert f"{given:.1f} ml of the segment lies in" in shape_text(upper)
+    assert "neighbour's" not in shape_text(SimpleNamespace(plausibility=None, ownership={
+        "segment_taken_ml": 0, "segment_given_ml": 0}))
     # the lower body comes out whole: about its 16 x 16 x 23 mm block (5.9 ml), not less the
     # 2.0 ml block the upper label held
     assert 5.2e3 < lower.volume_mm3 < 6.6e3, lower.volume_mm3

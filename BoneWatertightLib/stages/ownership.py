@@ -145,10 +145,11 @@ RIM_JOINT_FRACTION = 0.5
 # A label's core cut off from the rest of its core (a component other than its largest, of at
 # least MISPLACED_MIN_MM3 and of a ball as deep as the core: a smaller one is a speck the
 # erosion left where the label is barely thicker than twice the core depth) that lies mostly
-# (MISPLACED_IN_REGION_FRACTION) in another label's region is tried: without the label's markers in its part of the label, the flooding fills it
-# from the neighbour's bone when the CT joins it to that bone without a joint space and parts it
-# from its own. When a labelled neighbour takes at least MISPLACED_TAKEN_FRACTION of it (and
-# more than the label), that part of the label is the neighbour's (see _misplaced_cores).
+# (MISPLACED_IN_REGION_FRACTION) in another label's region is tried: without the label's
+# markers in its part of the label, the flooding fills it from the neighbour's bone when the CT
+# joins it to that bone without a joint space and parts it from its own. When the neighbour's
+# own bone (its basin joined to its largest core) takes at least MISPLACED_TAKEN_FRACTION of it,
+# and more than the label, that part of the label is the neighbour's (see _misplaced_cores).
 # Measured on the real 20-slice chest CT: TotalSegmentator's T11 label holds a block of T12's
 # body below T12's upper endplate (a core of 0.93 ml, 6 mm of disc above it): T12 takes 0.80
 # of it, T11 0.07; T12's own small core part there 1.00 T12's. On a 3 mm lumbar phantom whose
