@@ -340,7 +340,7 @@ def report_lines(real):
             d = b["distance"]
             pl = (b.get("pipeline") or {}).get("plausibility") or {}
             cap = (b.get("pipeline") or {}).get("cap") or {}
-            rows.append([b["name"] + ("" if b["reference_ml"] > MIN_ML else " (< 20 ml)"),
+            rows.append([b["name"] + ("" if b["reference_ml"] > MIN_ML else " (< 20 ml)") + _moved_text(b),
                          fmt(b["reference_ml"], 1),
                          "pass" if b["checks"]["ok"] else "**fail** " + short("; ".join(b["checks"]["problems"]), 60),
                          fmt(b["checks"].get("genus")), f"{d['mean']:.2f} / {d['p95']:.2f} / {d['max']:.2f}",
@@ -385,6 +385,20 @@ def report_lines(real):
               f"file written: **{'yes' if ref.get('file_written') else 'no'}**, message:", "", "```",
               (ref.get("message") or "").strip(), "```", ""]
     return L
+
+
+def _moved_text(b):
+    """' (+6.0 ml ...)': what the ownership moved between this bone's label and a neighbour's
+    (the reference is the label as it was, so its distances count the moved part)."""
+    own = (b.get("pipeline") or {}).get("ownership") or {}
+    out = ""
+    if own.get("segment_taken_ml"):
+        out += (f" (+{own['segment_taken_ml']:.1f} ml of a neighbour's label that lies in this "
+                "bone: the reference lacks it)")
+    if own.get("segment_given_ml"):
+        out += (f" (-{own['segment_given_ml']:.1f} ml of its label, in a neighbour's bone: the "
+                "reference holds it)")
+    return out
 
 
 def _gate(b):

@@ -156,3 +156,16 @@ def test_profile_prints_per_stage_time_and_memory_beside_slicer(tmp_path):
     assert all(f"| {k} |" in text for k in timed) and "| **total** |" in text
     assert "call / Slicer = **" in text and "CLI / Slicer = **" in text
     assert "## 5. Profile" in (out / "REPORT.md").read_text(encoding="utf-8")
+
+
+def test_the_real_table_says_what_the_ownership_moved_between_labels():
+    """The real runs' reference is each label as it was: a bone that took a neighbour's label
+    part (or gave one) says so beside its name, or its distances would read as misses."""
+    import bench_real
+
+    taken = {"pipeline": {"ownership": {"segment_taken_ml": 6.04, "segment_given_ml": 0}}}
+    given = {"pipeline": {"ownership": {"segment_taken_ml": 0, "segment_given_ml": 6.04}}}
+    assert "+6.0 ml of a neighbour's label" in bench_real._moved_text(taken)
+    assert "-6.0 ml of its label" in bench_real._moved_text(given)
+    assert bench_real._moved_text({"pipeline": {"ownership": {}}}) == ""
+    assert bench_real._moved_text({}) == ""
