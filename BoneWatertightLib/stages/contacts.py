@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 from ..mesh.checks import find_self_intersections
 from ..mesh.operators import laplacian, safe_update, sample_field, vertex_normals
 from ..mesh.surface import Surface, inside_mask, to_polydata
-from .threshold import bbox_slices, near
+from .threshold import bbox_slices, near, paste_box
 from ..mesh.distance import signed_distance as signed_distance_map
 from ..threads import thread_map
 
@@ -121,9 +121,9 @@ def _phi(k, masks: dict, shape: tuple, spacing: float):
     if not sub_k.any():
         return None
     win = _window(box_k, shape, spacing, pad)
-    mine = _paste(masks[k], win)
+    mine = paste_box(masks[k], win)
     zone = near(mine, spacing, SDF_PAD_MM)
-    others = [_paste(m, win) for j, m in masks.items() if j != k]
+    others = [paste_box(m, win) for j, m in masks.items() if j != k]
     others = [m for m in others if m is not None]
     close = [m & zone for m in others]
     if not any(c.any() for c in close):
@@ -171,19 +171,6 @@ def _window(box: tuple, shape: tuple, spacing: float, pad: int) -> tuple:
         a -= a % f
         win.append(slice(a, min(n, b.stop + reach)))
     return tuple(win)
-
-
-def _paste(entry: tuple, win: tuple):
-    """A (box, mask) entry on the window ``win`` (bool, the window's shape); None when they
-    do not meet."""
-    box, sub = entry
-    inter = [slice(max(b.start, w.start), min(b.stop, w.stop)) for b, w in zip(box, win)]
-    if any(i.start >= i.stop for i in inter):
-        return None
-    out = np.zeros(tuple(w.stop - w.start for w in win), bool)
-    out[tuple(slice(i.start - w.start, i.stop - w.start) for i, w in zip(inter, win))] = \
-        sub[tuple(slice(i.start - b.start, i.stop - b.start) for i, b in zip(inter, box))]
-    return out
 
 
 def allowed_test(phi_entry, spacing: float, min_gap: float):

@@ -61,7 +61,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull
 
-from .threshold import SIX, bbox_slices, segment_region
+from .threshold import SIX, bbox_slices, paste_box, segment_region
 from ..mesh.distance import distance_inside, distance_outside
 from ..threads import cpu_threads, thread_map
 
@@ -1204,28 +1204,25 @@ def _misplaced_cores(fg, levels, markers, labels, seg: _LabelParts, n: int, spac
     MISPLACED_TAKEN_FRACTION, and more than a, is b's bone: the CT joins it to b's bone without
     a joint space, while a reaches it only across one (or not at all). Bone the label has no
     rival for, or that continues into its own core, comes back to a in the trial."""
+    mains = {}  # label -> (its region's slices, its largest core part there or None)
     cands = []
     for a, (sl, _) in seg.regions.items():
-        core = seg.cores[sl] == a
-        comp, nc = ndimage.label(core, structure=SIX)
-        if nc < 2:
-            continue
+        comp, nc = ndimage.label(seg.cores[sl] == a, structure=SIX)
         size = np.bincount(comp.ravel(), minlength=nc + 1)
         size[0] = 0
         main = int(np.argmax(size))
+        mains[a] = (sl, comp == main if nc else None)
+        if nc < 2:
+            continue
         ids = [c for c in range(1, nc + 1)
                if c != main and size[c] * spacing ** 3 >= min_mm3]
         if not ids:
             continue
-        others = np.zeros(core.shape, bool)
-        for b, (slb, regb) in seg.regions.items():
-            if b == a:
-                continue
-            lo = [max(p.start, q.start) for p, q in zip(sl, slb)]
-            hi = [min(p.stop, q.stop) for p, q in zip(sl, slb)]
-            if all(h > l for l, h in zip(lo, hi)):
-                others[tuple(slice(l - p.start, h - p.start) for l, h, p in zip(lo, hi, sl))] |= \
-                    regb[tuple(slice(l - q.start, h - q.start) for l, h, q in zip(lo, hi, slb))]
+        others = np.zeros(comp.shape, bool)
+        for b, entry in seg.regions.items():
+            part = paste_box(entry, sl) if b != a else None
+            if part is not None:
+                others |= part
         inside = np.bincount(comp[others], minlength=nc + 1)
         boxes = ndimage.find_objects(comp)
         for c in ids:
@@ -1234,7 +1231,7 @@ def _misplaced_cores(fg, levels, markers, labels, seg: _LabelParts, n: int, spac
             # The territory on the candidate's box grown by the margin: label voxels whose
             # nearest core voxel of a is the candidate's.
             box = tuple(slice(max(q.start - margin_vox, 0), min(q.stop + margin_vox, dim))
-                        for q, dim in zip(boxes[c - 1], core.shape))
+                        for q, dim in zip(boxes[c - 1], comp.shape))
             cbox = comp[box]
             _, idx = ndimage.distance_transform_edt(cbox == 0, return_indices=True)
             near = cbox[tuple(idx)] == c
@@ -1263,7 +1260,7 @@ def _misplaced_cores(fg, levels, markers, labels, seg: _LabelParts, n: int, spac
         # Only b's own bone counts: the part of b's basin joined to b's largest core part (not
         # a block that b's label itself took from a neighbour, which floods the same way).
         if b not in basins:
-            basins[b] = _main_basin(ws, seg, b)
+            basins[b] = _main_basin(ws, b, *mains[b]) if b in mains else None
         main_b = basins[b]
         rivals[b] = int(np.count_nonzero(main_b[gbox][mine])) if main_b is not None else 0
         if rivals[b] < MISPLACED_TAKEN_FRACTION * n_core or rivals[b] <= got[a]:
@@ -1277,21 +1274,14 @@ def _misplaced_cores(fg, levels, markers, labels, seg: _LabelParts, n: int, spac
     return moved
 
 
-def _main_basin(ws, seg: _LabelParts, b: int):
-    """The part of label b's basin in ``ws`` connected to b's largest core part ((z, y, x)
-    bool), or None when b has no core."""
-    if b not in seg.regions:
+def _main_basin(ws, b: int, sl: tuple, main) -> np.ndarray:
+    """The part of label b's basin in ``ws`` joined to ``main`` (b's largest core part: a bool
+    mask on the slices ``sl``), (z, y, x) bool; None when b has no core."""
+    if main is None:
         return None
-    sl, _ = seg.regions[b]
-    core = seg.cores[sl] == b
-    comp, nc = ndimage.label(core, structure=SIX)
-    if not nc:
-        return None
-    main = comp == int(np.argmax(np.bincount(comp.ravel())[1:])) + 1
     basin, _ = ndimage.label(ws == b, structure=SIX)
     ids = np.unique(basin[sl][main])
-    ids = ids[ids > 0]
-    return np.isin(basin, ids)
+    return np.isin(basin, ids[ids > 0])
 
 
 def _foreign_pieces(faces: dict, merged: set, kept: set) -> set:

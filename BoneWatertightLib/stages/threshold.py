@@ -186,6 +186,19 @@ def erosions_to_separate(ct: np.ndarray, owner: np.ndarray, k: int, spacing: flo
     return None
 
 
+def paste_box(entry: tuple, win: tuple):
+    """A (box, mask) entry - slices of a grid and a bool mask on them - on the window ``win``
+    (slices of the same grid): bool, the window's shape; None when they do not meet."""
+    box, sub = entry
+    inter = [slice(max(b.start, w.start), min(b.stop, w.stop)) for b, w in zip(box, win)]
+    if any(i.start >= i.stop for i in inter):
+        return None
+    out = np.zeros(tuple(w.stop - w.start for w in win), bool)
+    out[tuple(slice(i.start - w.start, i.stop - w.start) for i, w in zip(inter, win))] = \
+        sub[tuple(slice(i.start - b.start, i.stop - b.start) for i, b in zip(inter, box))]
+    return out
+
+
 def dilate_cube(mask: np.ndarray, steps: int) -> np.ndarray:
     """``mask`` dilated by ``steps`` steps of the 3 x 3 x 3 cube, nothing beyond the border: a
     separable maximum over a cube of 2 ``steps`` + 1 voxels - the voxels of scipy's iterated
