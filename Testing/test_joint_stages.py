@@ -303,6 +303,30 @@ def test_a_label_part_joined_to_its_own_bone_stays_its_own(monkeypatch):
     assert (own.owner[6:18, 6:18, 21:28] == 1).all()
 
 
+def test_a_label_part_across_a_joint_the_slices_hide_stays_its_own(monkeypatch):
+    """Labels right, the joint space seen on the rim of the contact and hidden in its middle
+    (bright, as thick slices running along a joint blur it: the dome of an acetabulum over the
+    femoral head's pole); label 2 narrows to a strand (x 34..37), so its core is in two parts,
+    the one by the joint inside label 1's region. The trial for a misplaced part splits the
+    joint as the run does (the cut, the seen joint space carried over the hidden middle): the
+    part stays label 2's. A flood alone let block 1 in through the hidden middle and gave it
+    to label 1 (the held-out joint phantoms on 2.5 mm slices, seeds 41 and 43)."""
+    ct, labels = _two_blocks(shift_label=0, gap=2)
+    ct[6:18, 6:18, 28:30] = 1200.0
+    labels[:, :, 34:38] = 0
+    labels[11:13, 11:13, 34:38] = 2
+    kw = dict(h0=400.0, ht=200.0, theta_max=2500.0, soft=40.0, contrast=1160.0,
+              coarseness=1.0, band_mm=6.0)
+    own = ownership.compute_ownership(ct, labels, 2, 1.0, **kw)
+    assert own.info["relabelled"] == [] and own.labels is None
+    assert (own.owner[6:18, 6:18, 31:34] == 2).all()
+    trial = ownership._misplaced_cores
+    monkeypatch.setattr(ownership, "_misplaced_cores",
+                        lambda *a, joints=None, **k: trial(*a, **k))
+    flood_alone = ownership.compute_ownership(ct, labels, 2, 1.0, **kw)
+    assert [(r["from"], r["to"]) for r in flood_alone.info["relabelled"]] == [(2, 1)]
+
+
 @pytest.mark.parametrize("hidden", [False, True])
 def test_a_label_over_an_unlabelled_neighbours_rim_beyond_a_seen_joint_space(hidden):
     """A coarse label of bone 1 reaches across the joint space into the wall of an unlabelled
