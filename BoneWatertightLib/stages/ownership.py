@@ -410,7 +410,7 @@ def _touching_labels(ws: np.ndarray, n: int, *, piece_faces: int | None = None) 
 
 def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.ndarray,
                     n: int, spacing: float, r_contact: float, quantum: float,
-                    radius_mm: float) -> list:
+                    radius_mm: float, only: set | None = None) -> list:
     """Re-decide, in place, the voxels of ``ws`` where two labelled bones meet by a minimum cut.
 
     The flooding splits a joint zone at the geodesic midpoint between the two bones' markers
@@ -437,6 +437,8 @@ def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.n
         Voxel size and the joint zone's reach (mm).
     quantum, radius_mm : float
         The valley quantum (HU) and the valley filter's half-width (mm), as for the flooding.
+    only : set of int, optional
+        Only the pairs with one of these labels (default: every pair).
 
     Returns
     -------
@@ -452,6 +454,8 @@ def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.n
     boxes = ndimage.find_objects(labels, max_label=n)
     for a, b in _touching_labels(ws, n):
         if boxes[a - 1] is None or boxes[b - 1] is None:
+            continue
+        if only is not None and a not in only and b not in only:
             continue
         # Voxels within r_contact of both labels lie in their boxes grown by pad; their nearest
         # voxels of either label within one pad more.
@@ -536,7 +540,8 @@ def cut_joint_zones(ws: np.ndarray, fg: np.ndarray, labels: np.ndarray, ct: np.n
 def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.ndarray,
                      regions: dict, n: int, spacing: float, *, quantum: float,
                      radius_mm: float, reach_mm: float, margin_mm: float,
-                     resolution_mm: float = 0.0) -> list:
+                     resolution_mm: float = 0.0,
+                     only: set | None = None) -> list:
     """Carry the seen part of each joint over the part the slices hide (in place).
 
     Where thick slices run along a joint the CT shows no joint space and the flooding and the
@@ -581,6 +586,8 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
         The CT's voxel size (mm, a cube of its volume): how closely a ball joint's sphere must
         follow the seen joint space scales with it where it is coarser than the grid
         (jointfit.FIT_MAX_RMS_VOXELS).
+    only : set of int, optional
+        Only the pairs with one of these labels (default: every pair).
 
     Returns
     -------
@@ -602,6 +609,8 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
     for a, b in _touching_labels(ws, n, piece_faces=FIT_MIN_POINTS):
         ba, bb = boxes[a - 1], boxes[b - 1]
         if ba is None or bb is None:
+            continue
+        if only is not None and a not in only and b not in only:
             continue
         sl = tuple(slice(max(0, max(p.start, q.start) - pad), min(size, min(p.stop, q.stop) + pad))
                    for p, q, size in zip(ba, bb, ws.shape))
@@ -1260,12 +1269,14 @@ def _misplaced_cores(fg, levels, markers, labels, seg: _LabelParts, n: int, spac
         # bone across a joint the slices hide (the dome of an acetabulum over the femoral
         # head's pole on thick slices) would otherwise flood from the neighbour as if it were
         # the neighbour's. (On copies: the fits move cores and grow regions in place.)
+        # Only the joints of the labels tried: the others do not reach the candidates.
+        tried = {a for a, *_ in cands}
         cut_joint_zones(ws, fg, labels, joints["ct"], n, spacing, joints["r_contact"],
-                        quantum=joints["quantum"], radius_mm=joints["radius_mm"])
+                        quantum=joints["quantum"], radius_mm=joints["radius_mm"], only=tried)
         carry_joint_fits(ws, fg, joints["ct"], seg.cores.copy(), dict(seg.regions), n, spacing,
                          quantum=joints["quantum"], radius_mm=joints["radius_mm"],
                          reach_mm=joints["reach_mm"], margin_mm=joints["r_contact"],
-                         resolution_mm=joints["resolution_mm"])
+                         resolution_mm=joints["resolution_mm"], only=tried)
     basins = {}
     moved = []
     for a, c, terr, gbox, mine, n_core, n_main in cands:
