@@ -322,7 +322,7 @@ def test_a_label_part_across_a_joint_the_slices_hide_stays_its_own(monkeypatch):
     assert (own.owner[6:18, 6:18, 31:34] == 2).all()
     trial = ownership._misplaced_cores
     monkeypatch.setattr(ownership, "_misplaced_cores",
-                        lambda *a, joints=None, **k: trial(*a, **k))
+                        lambda *a, split_joints=None, **k: trial(*a, **k))
     flood_alone = ownership.compute_ownership(ct, labels, 2, 1.0, **kw)
     assert [(r["from"], r["to"]) for r in flood_alone.info["relabelled"]] == [(2, 1)]
 

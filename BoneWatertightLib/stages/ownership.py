@@ -864,13 +864,22 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
     # A visible joint space: below H0 in a valley of at least SEEN_VALLEY_QUANTA quanta.
     seen = ~strong & (levels >= SEEN_VALLEY_QUANTA)
     markers, n_pieces, dropped = _markers(fg, strong, labels, seg, other, spacing, seen=seen)
+
+    def split_joints(ws, cores, regions, only=None):
+        # On the basins ``ws`` (in place): the joint cut, then the seen joint
+        # space carried over the part the slices hide (moves cores, grows regions, in place).
+        cut = cut_joint_zones(ws, fg, labels, ct, n, spacing, r_contact, quantum=quantum,
+                              radius_mm=radius, only=only)
+        fits = carry_joint_fits(ws, fg, ct, cores, regions, n, spacing, quantum=quantum,
+                                radius_mm=radius, reach_mm=r_contact + band_mm,
+                                margin_mm=r_contact, resolution_mm=ct_resolution, only=only)
+        return cut, fits
+
     if check_misplaced and n > 1:
         moved = _misplaced_cores(fg, levels, markers, labels, seg, n, spacing,
                                  margin_vox=int(np.ceil(2 * r_core / spacing)) + 1,
                                  min_mm3=max(MISPLACED_MIN_MM3, 4.0 / 3.0 * np.pi * r_core ** 3),
-                                 joints=dict(ct=ct, r_contact=r_contact, quantum=quantum,
-                                             radius_mm=radius, reach_mm=r_contact + band_mm,
-                                             resolution_mm=ct_resolution))
+                                 split_joints=split_joints)
         if moved:
             del fg, strong, levels, seen, markers, seg
             fixed = labels.copy()
@@ -893,11 +902,7 @@ def compute_ownership(ct: np.ndarray, labels: np.ndarray, n: int, spacing: float
         if progress:
             progress(0.6, "flooding from the markers")
         ws = flood_from_markers(markers, levels, fg)
-        cut = cut_joint_zones(ws, fg, labels, ct, n, spacing, r_contact, quantum=quantum,
-                              radius_mm=radius)
-        fits = carry_joint_fits(ws, fg, ct, seg.cores, seg.regions, n, spacing,
-                                quantum=quantum, radius_mm=radius, reach_mm=r_contact + band_mm,
-                                margin_mm=r_contact, resolution_mm=ct_resolution)
+        cut, fits = split_joints(ws, seg.cores, seg.regions)
         if progress:
             progress(0.8, "contacts between bones")
         faces = _interfaces(ws, fg, ct, spacing, quantum, radius)
@@ -1204,7 +1209,7 @@ def _beyond_a_joint_space(fg, strong, labels, seg: _LabelParts, om, seen) -> np.
 
 def _misplaced_cores(fg, levels, markers, labels, seg: _LabelParts, n: int, spacing: float,
                      *, margin_vox: int, min_mm3: float = MISPLACED_MIN_MM3,
-                     joints: dict | None = None) -> list:
+                     split_joints=None) -> list:
     """Parts of a label that lie in a labelled neighbour's bone (an AI label that took a block
     of the next vertebra's body across the disc): [(record, (z, y, x) bool voxels to give to
     the neighbour: slices of the grid, bool on them)], empty when there are none.
@@ -1213,10 +1218,10 @@ def _misplaced_cores(fg, levels, markers, labels, seg: _LabelParts, n: int, spac
     ``min_mm3``, lying mostly (MISPLACED_IN_REGION_FRACTION) in another label's region.
     Its territory is the part of the label nearer to it than to the rest of a's core (within
     ``margin_vox`` of it). One trial flood runs without a's markers in the territories (every
-    candidate at once), its basins split at the joints as the run's own are (``joints``: the
-    keywords of :func:`cut_joint_zones` and :func:`carry_joint_fits`: ``ct``, ``r_contact``,
-    ``quantum``, ``radius_mm``, ``reach_mm``, ``resolution_mm``; None: the flood alone); a
-    candidate whose core a labelled neighbour b then fills to at least
+    candidate at once), its basins split at the joints as the run's own are
+    (``split_joints(ws, cores, regions, only)``: the run's joint cut and carried fits, see
+    :func:`compute_ownership`; None: the flood alone); a candidate whose core a labelled
+    neighbour b then fills to at least
     MISPLACED_TAKEN_FRACTION, and more than a, is b's bone: the CT joins it to b's bone without
     a joint space, while a reaches it only across one (or not at all). Bone the label has no
     rival for, or that continues into its own core, comes back to a in the trial."""
@@ -1263,20 +1268,13 @@ def _misplaced_cores(fg, levels, markers, labels, seg: _LabelParts, n: int, spac
         t[terr & (t == a)] = 0
     ws = flood_from_markers(trial, levels, fg)
     del trial
-    if joints is not None:
-        # The joints as the run itself splits them: the trial's basins cut where two bones
-        # meet and the seen joint space carried over the part the slices hide. A label's own
-        # bone across a joint the slices hide (the dome of an acetabulum over the femoral
-        # head's pole on thick slices) would otherwise flood from the neighbour as if it were
-        # the neighbour's. (On copies: the fits move cores and grow regions in place.)
-        # Only the joints of the labels tried: the others do not reach the candidates.
-        tried = {a for a, *_ in cands}
-        cut_joint_zones(ws, fg, labels, joints["ct"], n, spacing, joints["r_contact"],
-                        quantum=joints["quantum"], radius_mm=joints["radius_mm"], only=tried)
-        carry_joint_fits(ws, fg, joints["ct"], seg.cores.copy(), dict(seg.regions), n, spacing,
-                         quantum=joints["quantum"], radius_mm=joints["radius_mm"],
-                         reach_mm=joints["reach_mm"], margin_mm=joints["r_contact"],
-                         resolution_mm=joints["resolution_mm"], only=tried)
+    if split_joints is not None:
+        # The joints as the run itself splits them: a label's own bone across a joint the
+        # slices hide (the dome of an acetabulum over the femoral head's pole on thick slices)
+        # would otherwise flood from the neighbour as if it were the neighbour's. On copies of
+        # the cores and regions; only the joints of the labels tried (the others do not reach
+        # the candidates).
+        split_joints(ws, seg.cores.copy(), dict(seg.regions), only={a for a, *_ in cands})
     basins = {}
     moved = []
     for a, c, terr, gbox, mine, n_core, n_main in cands:
