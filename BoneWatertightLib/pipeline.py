@@ -1510,7 +1510,8 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
     th = ws.thresholds
     _plaus.gate(plaus, coarseness=ws.prep.coarseness, band_mm=ws.band, name=bone.name,
                 estimated=((th["h0"], th["ht"]) if th.get("h0_auto") and th.get("ht_auto")
-                           else None))
+                           else None),
+                where_text=lambda at: _lps_text(ws.prep.grid, np.asarray(at) + corner))
     return plaus, box, seg_all[box]
 
 

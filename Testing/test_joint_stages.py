@@ -749,7 +749,7 @@ def _ball(shape, centre, r):
     return (x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2 <= r * r
 
 
-def _measure(inside, label, **kw):
+def _measure(inside, label, where_text=None, **kw):
     verts = np.argwhere(inside & ~np.pad(inside, 1)[1:-1, 1:-1, 2:])[:, ::-1].astype(float)
     none = np.zeros(label.shape, bool)
     p = plausibility.measure(inside, verts, label, none, kw.pop("cores", none),
@@ -757,7 +757,7 @@ def _measure(inside, label, **kw):
                              volume_mm3=float(inside.sum()), coarseness=2.0, band_mm=3.0,
                              edge_support=kw.pop("edge", 0.95),
                              threshold_reach=kw.pop("reach", 0.95), **kw)
-    return plausibility.gate(p, coarseness=2.0, band_mm=3.0, name="bone")
+    return plausibility.gate(p, coarseness=2.0, band_mm=3.0, name="bone", where_text=where_text)
 
 
 def test_plausible_surface_passes():
@@ -791,6 +791,33 @@ def test_a_coarse_label_overhanging_a_thin_shell_is_not_missing_bone():
     assert p.ok and p.missing_fraction < 0.02, (p.missing_fraction, p.problems)
     half = bone & (np.indices(shape)[2] >= 30)
     assert not measured(half).ok
+
+
+def test_a_thin_process_of_the_segment_the_surface_stops_short_of_is_warned():
+    """A rod of the segment 2 voxels across and 20 long (a coccygeal tail, a transverse
+    process's tip on thick slices) outside the surface: too thin for the missing fractions (no
+    voxel deeper than c / 2), so the run passes - but it is not silent: the warning gives how
+    far the segment reaches beyond the surface (here 20 mm, farther than 2 c + 2 = 6 mm) and
+    where. A label reaching 1 mm beyond the same surface (the generosity of a coarse label)
+    and a rod the surface holds are not warned."""
+    shape = (40, 40, 70)
+    label = _ball(shape, (20, 20, 20), 10)
+    rod = np.zeros(shape, bool)
+    rod[19:21, 19:21, 30:50] = True
+    surface = _ball(shape, (20, 20, 20), 10.5)
+    p = _measure(surface, label | rod, where_text=lambda at: "x = %.0f" % at[0])
+    assert p.ok, p.problems
+    assert p.missing_fraction == 0.0 and p.core_missing_fraction == 0.0
+    assert p.segment_reach_mm == pytest.approx(49 - 30.5, abs=1.0)
+    assert p.segment_reach_ml == pytest.approx(4 * (49 - 36) / 1000.0, abs=0.01)
+    text = " ".join(p.warnings)
+    assert "the segment reaches 19" in text and "beyond the surface" in text, text
+    assert "farthest at x = 49" in text, text
+    assert plausibility.reach_bound_mm(2.0) == pytest.approx(6.0)
+    for inside, segment in ((_ball(shape, (20, 20, 20), 9), label), (surface | rod, label | rod)):
+        p = _measure(inside, segment)
+        assert not any("beyond the surface" in w for w in p.warnings), p.warnings
+        assert p.segment_reach_mm < 6.0
 
 
 def test_a_missing_half_fails():

@@ -29,7 +29,13 @@ stair-stepped by up to c; a rough user segment is smaller than the bone):
 - ``volume_ratio`` and ``segment_inside_fraction`` for the report;
 - ``p95_excursion_mm`` beyond about 1.3 c: a warning (an unlabelled neighbour taken in?);
 - ``core_missing_fraction``: as ``missing_fraction`` for the voxels deeper than c/2 + 1 mm;
-  beyond 5 % a warning (a part of the bone lost, or a generous label).
+  beyond 5 % a warning (a part of the bone lost, or a generous label);
+- ``segment_reach_mm``: the farthest the segment (as for ``missing_fraction``, at any depth)
+  lies outside the surface. The missing fractions count only the segment's thick parts, so a
+  thin process that the surface stops short of (a coccygeal tail, a transverse process's tip or
+  an iliac crest on thick slices, whose blurred cortex is below HT) passes them unseen; beyond
+  the excursion bound's EXCURSION_COARSENESS x c + EXCURSION_MM (the farthest a segment that
+  coarse misplaces the bone's border) it is a warning with its volume and place.
 
 :func:`gate` turns them into problems with advice; the pipeline fails on them, or only warns when
 the user allows it (``on_implausible = "warn"``). Cut faces (caps) lie at the image boundary: the
@@ -145,6 +151,12 @@ class Plausibility:
     # the surface (within the coarseness) or soft tissue on the CT (a generous segment).
     segment_beyond_edge_ml: float = 0.0
     unsupported_pieces: int = 0
+    # The farthest the segment lies outside the surface (mm), the segment's volume farther out
+    # than the warning's bound (ml), and where its farthest voxel is (x-y-z mm of the box, the
+    # pipeline gives it in LPS).
+    segment_reach_mm: float = 0.0
+    segment_reach_ml: float = 0.0
+    segment_reach_at: list | None = None
     unlabelled_bone_ml: float = 0.0
     # Bone outside every segment that continues this bone (merged, see ownership step 4) and
     # that the surface holds (ml): what the segment missed of it.
@@ -330,6 +342,10 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     core = deep & core_deep
     core_missing = float((core & ~inside).sum() / max(core.sum(), 1))
     extra = float((inside & in_image & (d_out > band_mm + coarseness)).sum() / max(in_n, 1))
+    reach_mm, reach_ml, reach_at = _segment_reach(part & ~inside, inside, spacing,
+                                                  reach_bound_mm(coarseness))
+    if reach_at is not None and f > 1:
+        reach_at = [v + 0.5 * (spacing - spacing / f) for v in reach_at]  # the block's centre
     exc = sample_field(d_out.astype(np.float32), vertices, spacing, cval=0.0)
     p = Plausibility(
         segment_ml=seg_n * voxel / 1000.0, surface_ml=volume_mm3 / 1000.0,
@@ -347,8 +363,29 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         untouched_bone_ml=float(left_out.sum() * voxel / 1000.0),
         unsupported_segment_ml=unsupported_ml, unsupported_pieces=int(unsupported_pieces),
         segment_beyond_edge_ml=excused_ml,
+        segment_reach_mm=reach_mm, segment_reach_ml=reach_ml, segment_reach_at=reach_at,
         unlabelled_bone_ml=unlabelled_ml, added_bone_ml=added_ml)
     return p
+
+
+def reach_bound_mm(coarseness: float) -> float:
+    """How far a segment this coarse (mm) may lie outside a surface that follows its bone
+    before :func:`gate` warns (mm): the farthest it misplaces the bone's border."""
+    return EXCURSION_COARSENESS * coarseness + EXCURSION_MM
+
+
+def _segment_reach(outside: np.ndarray, inside: np.ndarray, spacing: float,
+                   bound_mm: float) -> tuple:
+    """(farthest distance (mm) of a voxel of ``outside`` (z, y, x bool: the segment outside
+    the surface) from ``inside`` (the surface's voxels), the volume (ml) of those farther than
+    ``bound_mm``, and the farthest voxel's centre (x-y-z mm of the box) or None)."""
+    if not outside.any() or not inside.any():
+        return 0.0, 0.0, None
+    dist = distance_outside(inside)[outside] * spacing
+    far = int(np.argmax(dist))
+    at = np.argwhere(outside)[far][::-1] * spacing
+    return (float(dist[far]), float((dist > bound_mm).sum() * spacing ** 3 / 1000.0),
+            [float(v) for v in at])
 
 
 def _block_majority(mask: np.ndarray, f: int) -> np.ndarray:
@@ -375,9 +412,11 @@ def _threshold_advice(estimated) -> str:
 
 
 def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str,
-         estimated=None) -> Plausibility:
+         estimated=None, where_text=None) -> Plausibility:
     """Fill ``p.bounds`` and ``p.problems`` (each problem says what is wrong and what to do;
-    ``estimated``: (H0, HT) in HU when both were estimated, not the user's; None otherwise)."""
+    ``estimated``: (H0, HT) in HU when both were estimated, not the user's; None otherwise;
+    ``where_text``: optional callable giving a place of the box (x-y-z mm) as text for a
+    message)."""
     advice = _threshold_advice(estimated)
     max_exc = band_mm + EXCURSION_COARSENESS * coarseness + EXCURSION_MM
     p.bounds = {"missing_fraction_max": MAX_MISSING_FRACTION,
@@ -480,6 +519,18 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str,
             f"segment (expected below {warn_exc:.1f} mm for a segment this coarse): it may have "
             "taken in an unlabelled neighbouring bone. Label the neighbours (every other label "
             "competes) and check the surface there")
+    reach = reach_bound_mm(coarseness)
+    p.bounds["segment_reach_warn_mm"] = reach
+    if p.segment_reach_mm > reach and not problems:
+        p.warnings.append(
+            f"{name}: the segment reaches {p.segment_reach_mm:.1f} mm beyond the surface "
+            f"({1000 * p.segment_reach_ml:.0f} mm^3 of it farther than {reach:.1f} mm, the most "
+            "a segment this coarse misplaces the bone's border"
+            + (f"; farthest at {where_text(p.segment_reach_at)}"
+               if where_text is not None and p.segment_reach_at is not None else "")
+            + "): the surface stops short of a part of the segment - a thin process whose "
+            "blurred cortex the CT shows below HT (a tip cut off), or a part the segment has "
+            "wrong. Compare the surface with the segment and the CT there")
     p.bounds["volume_ratio_warn"] = [1.0 - VOLUME_WARN_FRACTION, 1.0 + VOLUME_WARN_FRACTION]
     # (the core warning above already gives both volumes)
     if (not problems and not core_warned and p.segment_ml > 0 and p.surface_ml > 0
