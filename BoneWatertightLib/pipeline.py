@@ -275,6 +275,7 @@ class BoneWork:
     contacts: dict = field(default_factory=dict)
     fallbacks: FallbackLog = field(default_factory=FallbackLog)  # what fell back, and where
     plates: Optional[_plates.Plates] = None  # thin plates the thresholds miss (grid mm)
+    processes: Optional[np.ndarray] = None  # thin processes of the segment joined (masks' box)
     # M0's tunnels through a thin plate the CT shows (_plate_holes; box mm)
     plate_holes: dict = field(default_factory=dict)
     plate_ct: Optional[np.ndarray] = None  # the masks' box of the CT at the plates' scale
@@ -765,6 +766,48 @@ def thin_plates(run: _Run, ws: Workspace, bone: BoneWork) -> None:
         masks.solid_h0 |= slab
         masks.occupancy |= slab
         masks.info["voxels_plate"] = int(slab.sum())
+    segment_processes(run, ws, bone)
+
+
+def segment_processes(run: _Run, ws: Workspace, bone: BoneWork) -> None:
+    """Thin processes of the segment beyond the thresholded bone that the CT shows as a faint
+    bright structure (stages.plates.segment_processes) join the bone's masks as the plates do,
+    as label-only bone (the segment gives their shape)."""
+    masks, d, own, k = bone.masks, ws.d, ws.own, bone.k
+    box = masks.box
+    label = (ws.labels[box] == k) & ((own.owner[box] == 0) | (own.owner[box] == k))
+    if own.unsupported is not None:
+        label &= ~own.unsupported[box]
+    planes = ws.prep.caps.get(k, [])
+    if planes:
+        label &= _plaus.image_mask(box, planes, d)
+    soft = ws.thresholds["soft_tissue_hu"]
+    max_contrast = _ownership.LABEL_LEVEL_FRACTION * (ws.ht - soft)
+    min_contrast = bone.plates.info.get("min_contrast_hu")
+    if min_contrast is None:
+        noise = _plates.soft_tissue_noise(bone.plate_ct, label | masks.w_ht, soft)
+        min_contrast = min(max_contrast, _plates.PLATE_NOISE_FACTOR * noise)
+    procs, records = _plates.segment_processes(
+        label, masks.occupancy, bone.plate_ct, d,
+        reach_mm=_plaus.reach_bound_mm(ws.prep.coarseness), margin_mm=ws.prep.coarseness,
+        soft=soft, min_contrast=float(min_contrast))
+    masks.info["segment_processes"] = records
+    if procs.any():
+        bone.processes = procs
+        masks.w_ht |= procs
+        masks.far |= procs & ~masks.w_h0
+        masks.solid_h0 |= procs
+        masks.occupancy |= procs
+        masks.info["voxels_process"] = int(procs.sum())
+        joined = [r for r in records if r["joined"]]
+        where = "; ".join(_lps_text(ws.prep.grid, np.asarray(r["at"]) + masks.origin)
+                          for r in joined[:3])
+        bone.fallbacks.add("threshold", "thin processes of the segment reaching up to "
+                           f"{max(r['reach_mm'] for r in joined):.0f} mm beyond the thresholded "
+                           "bone, which the CT shows brighter than the tissue around them but "
+                           "below HT (a tail or a tip thinner than the CT resolves), were joined "
+                           f"with the segment's shape ({float(procs.sum()) * d ** 3:.0f} mm^3)",
+                           len(joined), "processes", where)
 
 
 def _lps_text(grid, point_grid_mm: np.ndarray) -> str:
@@ -919,6 +962,11 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
             return _plaus.segment_genus(trusted, d, ws.prep.coarseness)
         bone_ct = masks.occupancy | masks.w_ht | masks.w_h0
         lumen = ct_box < own.info["label_level_hu"]
+        if bone.processes is not None:
+            # A thin process joined from the segment is darker than the label level but no
+            # lumen: the carve's soft edge beside it would shave it to a thread.
+            lumen &= ~_threshold.dilate_cube(
+                bone.processes, int(np.ceil((CARVE_BONE_MM + d) / d)))
         return mask_normals(masks.solid_h0, points, d), _poisson.carve_region(
             trusted, bone_ct, d,
             segment_margin_mm=CARVE_SEGMENT_COARSENESS * ws.prep.coarseness + d,
@@ -1195,6 +1243,7 @@ def release_grids(run: _Run, ws: Workspace, bones: dict) -> None:
         if bone.masks is not None and not run.params.keep_intermediates:
             masks = bone.masks
             masks.w_h0 = masks.w_ht = masks.solid_h0 = masks.occupancy = masks.far = None
+        bone.processes = None
         if bone.fusion is not None:
             bone.fusion.carve = bone.fusion.bone = bone.fusion.solid = None
 

@@ -125,3 +125,122 @@ def test_a_plug_mask_becomes_an_occupancy_on_m0s_grid():
     xs = lo[0] + h * np.arange(40)
     assert np.interp(9.5, xs, row) == pytest.approx(0.5, abs=0.02)
     assert np.interp(4.5, xs, row) == pytest.approx(0.5, abs=0.02)
+
+
+# ------------------------------------------------------------------- thin processes of a segment
+
+def _process_scene(rod_hu, around_hu=-80.0, seed=0):
+    """A ball of thresholded bone (radius 10 voxels of 1 mm) whose segment goes on as a rod 3
+    voxels across and 16 long beyond it (a tail the CT barely resolves): the CT is ``rod_hu``
+    along the rod, ``around_hu`` around it, 20 HU of noise; smoothed as the pipeline does."""
+    shape = (40, 40, 60)
+    z, y, x = np.indices(shape)
+    ball = (x - 20) ** 2 + (y - 20) ** 2 + (z - 20) ** 2 <= 100
+    rod = (np.abs(y - 20) <= 1) & (np.abs(z - 20) <= 1) & (x >= 20) & (x <= 46)
+    label = ball | rod
+    ct = np.full(shape, around_hu, np.float32)
+    ct[rod] = rod_hu
+    ct[ball] = 700.0
+    ct += np.random.default_rng(seed).normal(0.0, 20.0, shape).astype(np.float32)
+    sm = ndimage.gaussian_filter(ct, 1.0)
+    return label, ball, sm, rod & ~ball
+
+
+def test_a_thin_process_of_the_segment_the_ct_shows_is_joined():
+    """The rod reaches 16 mm beyond the bone (more than 2 c + 2 = 8 mm for c = 3) and stands
+    well above the tissue around it, above the soft tissue's level: joined whole, from the bone
+    to its tip; its record says how far it reaches and where its tip is."""
+    label, ball, sm, rod = _process_scene(rod_hu=250.0)
+    mask, records = plates.segment_processes(label, ball, sm, 1.0, reach_mm=8.0, margin_mm=3.0,
+                                             soft=50.0, min_contrast=60.0)
+    assert len(records) == 1 and records[0]["joined"], records
+    assert records[0]["reach_mm"] == pytest.approx(16.0, abs=1.0)
+    assert records[0]["at"][0] == pytest.approx(46.0, abs=1.0)
+    assert (mask & rod).sum() >= 0.95 * rod.sum()
+    assert not (mask & ~label).any()
+    # the segment's voxels between the process and the bone are joined with it
+    assert mask[20, 20, 31]
+
+
+@pytest.mark.parametrize("rod_hu, around_hu", [(30.0, -80.0),    # a muscle's strand in fat
+                                               (-80.0, 40.0)])  # a dark canal in soft tissue
+def test_a_process_of_the_segment_the_ct_does_not_show_as_bone_is_not_joined(rod_hu, around_hu):
+    """Below the soft tissue's level (a label leaking along a muscle), or darker than what is
+    around it: no bone the CT shows, nothing joined (the plausibility's reach warning says the
+    segment goes on beyond the surface)."""
+    label, ball, sm, _ = _process_scene(rod_hu=rod_hu, around_hu=around_hu)
+    mask, records = plates.segment_processes(label, ball, sm, 1.0, reach_mm=8.0, margin_mm=3.0,
+                                             soft=50.0, min_contrast=60.0)
+    assert len(records) == 1 and not records[0]["joined"] and not mask.any(), records
+
+
+def test_a_generous_margin_is_no_process():
+    """A segment 2 voxels wider than the bone all round (a coarse label's margin) reaches less
+    far than the bound: nothing is examined."""
+    label, ball, sm, _ = _process_scene(rod_hu=250.0)
+    z, y, x = np.indices(label.shape)
+    generous = (x - 20) ** 2 + (y - 20) ** 2 + (z - 20) ** 2 <= 144
+    mask, records = plates.segment_processes(generous, ball, sm, 1.0, reach_mm=8.0,
+                                             margin_mm=3.0, soft=50.0, min_contrast=60.0)
+    assert records == [] and not mask.any()
+
+
+def _tail_ct(rod_hu: float, seed: int = 0):
+    """(CT, segment) as sitk images, 2 mm voxels: a ball of bone (cortex 2 mm at 1100 HU,
+    250 HU inside, radius 13 mm) in fat (-80 HU) with a tail 1 mm across and 32 mm long at
+    ``rod_hu`` (made on a 0.25 mm grid, blurred by a 0.6 mm PSF, averaged into the voxels:
+    75-105 HU at 1100 HU, under HT), 15 HU of noise; the segment: the voxels a 2 mm tail and
+    the ball cover by a fifth (an AI label on the CT's grid)."""
+    import SimpleITK as sitk
+
+    f, k = 0.25, 8
+    n = (np.array([64, 48, 48]) / f).astype(int)  # x, y, z
+    z, y, x = np.meshgrid(*[(np.arange(m) + 0.5) * f for m in n[::-1]], indexing="ij")
+    r = np.sqrt((x - 20) ** 2 + (y - 24) ** 2 + (z - 24) ** 2)
+    axis = np.hypot(y - 25, z - 25)
+    hu = np.full(x.shape, -80.0, np.float32)
+    hu[r <= 13] = 1100.0
+    hu[r <= 11] = 250.0
+    hu[(axis <= 0.5) & (x > 20) & (x <= 52)] = rod_hu
+    hu = ndimage.gaussian_filter(hu, 0.6 / f)
+
+    def voxels(a):
+        return a.reshape(n[2] // k, k, n[1] // k, k, n[0] // k, k).mean(axis=(1, 3, 5))
+
+    ct = voxels(hu) + np.random.default_rng(seed).normal(0.0, 15.0, (n // k)[::-1])
+    label = voxels(((r <= 13) | (axis <= 1.0) & (x > 20) & (x <= 52)).astype(np.float32)) >= 0.2
+    img = sitk.GetImageFromArray(ct.astype(np.float32))
+    img.SetSpacing((2.0, 2.0, 2.0))
+    seg = sitk.GetImageFromArray(label.astype(np.uint8))
+    seg.CopyInformation(img)
+    return img, seg
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_tail_under_ht_that_the_segment_covers_is_in_the_surface(seed):
+    """End to end at the defaults: the tail (its tip at x = 52 mm) is in the surface, joined
+    as a process of the segment (a threshold fallback says so), not cut off at the ball
+    (x = 33 mm, where the surface stopped before); and it is not warned as a segment that
+    reaches beyond the surface."""
+    from BoneWatertightLib.params import Parameters
+
+    ct, seg = _tail_ct(1100.0, seed)
+    res = pipeline.reconstruct(ct, seg, Parameters())
+    assert res.ok
+    assert res.surface.vertices[:, 0].max() > 47.0
+    assert any("thin processes of the segment" in f.what for f in res.report.fallbacks)
+    assert not any("beyond the surface" in w for w in res.report.warnings), res.report.warnings
+
+
+def test_a_tail_of_the_segment_over_soft_tissue_is_left_out_and_warned():
+    """The same segment over a tail at soft tissue's density (a label leaking along a strand of
+    muscle): not joined; the surface stops at the ball and the run says how far the segment
+    reaches beyond it."""
+    from BoneWatertightLib.params import Parameters
+
+    ct, seg = _tail_ct(60.0)
+    res = pipeline.reconstruct(ct, seg, Parameters())
+    assert res.surface.vertices[:, 0].max() < 36.0
+    assert not any("thin processes of the segment" in f.what for f in res.report.fallbacks)
+    assert any("the segment reaches" in w and "beyond the surface" in w
+               for w in res.report.warnings), res.report.warnings

@@ -21,6 +21,11 @@ bone is. The ridge still says where the plate is, and how much bone it holds:
    fused into the initial surface M0 (Poisson at depth 7 cannot resolve a plate of a few
    millimetres in a bone 20 cm long), and gives the edge refinement a target on the vertices
    where the CT profile shows no edge.
+4. **Processes of the segment** (:func:`segment_processes`): a tail or a process tip thinner
+   than the CT resolves is a faint bright *rod*, too narrow for a sheet's profile; where the
+   segment goes on along it farther beyond the thresholded bone than a segment that coarse
+   misplaces a border, and the CT there is above the soft tissue and brighter than the tissue
+   around it, the segment's part joins the bone (label-only shape, reported as a fallback).
 
 Points are (n, 3) x-y-z millimetres of the working grid; volumes (z, y, x) arrays.
 """
@@ -639,3 +644,95 @@ def _ridge_voxels(sm: np.ndarray, cand: np.ndarray, d: float, native: np.ndarray
         right = np.where(within & (t[None, :] > d), prof, np.inf).min(axis=1)
         kept.append(part[centre - 0.5 * (left + right) >= min_contrast])
     return np.concatenate(kept) if kept else np.zeros((0, 3), np.int64)
+
+
+# The tissue around a process of the segment: this many voxels beyond the segment (and the
+# bone) around it.
+PROCESS_SHELL_VOXELS = 2
+# A process's ridge level: this percentile of the smoothed CT over its voxels.
+PROCESS_PEAK_PERCENTILE = 90
+
+
+def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spacing: float, *,
+                      reach_mm: float, margin_mm: float, soft: float, min_contrast: float
+                      ) -> tuple:
+    """Thin processes of the segment beyond the thresholded bone that the CT shows as a faint
+    bright structure: a tail, a process tip or a rib's end thinner than the CT resolves, whose
+    blurred cortex stays below HT (the thresholds hold none or only crumbs of it), so the
+    surface would stop short of it by up to its length.
+
+    A part of the segment counts when it reaches farther than ``reach_mm`` from the main piece
+    of ``bone`` (farther than a segment this coarse misplaces the bone's border; a generous
+    margin does not), and the CT supports it: on the smoothed CT its ridge (the
+    PROCESS_PEAK_PERCENTILE-th percentile of its voxels) is above the soft tissue's level
+    ``soft``, and its mean stands at least ``min_contrast`` above the mean of the tissue just
+    outside the segment around it. A part of the segment into soft tissue (a
+    leak along a muscle), fat or a dark canal does not. What is joined is the part beyond
+    ``margin_mm`` of the bone (the segment's margin, where the bone's own surface decides)
+    with the segment's voxels that join it to the bone.
+
+    Parameters
+    ----------
+    label, bone : (z, y, x) bool arrays
+        The bone's segment and its thresholded bone (filled) on a box of the working grid.
+    sm : (z, y, x) float array
+        The smoothed CT (HU) on the same box (:func:`smooth_ct`).
+    spacing : float
+        Working voxel size (mm).
+    reach_mm, margin_mm : float
+        How far a process reaches at least, and the segment's margin (mm).
+    soft, min_contrast : float
+        The soft-tissue level and the least contrast (HU).
+
+    Returns
+    -------
+    (mask, records): the processes' voxels (z, y, x bool, same shape) and one dict each
+    (``voxels``, ``reach_mm``, ``peak_hu``, ``contrast_hu``, ``at``: its farthest voxel,
+    x-y-z mm of the box), supported or not (``joined``).
+    """
+    from ..mesh.distance import distance_outside
+
+    d = float(spacing)
+    out = np.zeros(label.shape, bool)
+    pieces, n = ndimage.label(bone, structure=np.ones((3, 3, 3), bool))
+    if not n:
+        return out, []
+    main = pieces == (int(np.argmax(np.bincount(pieces.ravel())[1:])) + 1)
+    rest = label & ~main
+    if not rest.any():
+        return out, []
+    dist = distance_outside(main) * d
+    beyond = rest & (dist > margin_mm)
+    parts, m = ndimage.label(beyond, structure=np.ones((3, 3, 3), bool))
+    if not m:
+        return out, []
+    far = ndimage.maximum(dist, parts, index=np.arange(1, m + 1))
+    records = []
+    boxes = ndimage.find_objects(parts)
+    for j in np.flatnonzero(np.asarray(far) > reach_mm) + 1:
+        box = boxes[j - 1]
+        grow = PROCESS_SHELL_VOXELS + 1
+        box = tuple(slice(max(s.start - grow, 0), min(s.stop + grow, n_)) for s, n_ in
+                    zip(box, label.shape))
+        part = parts[box] == j
+        shell = dilate_cube(part, PROCESS_SHELL_VOXELS) & ~label[box] & ~bone[box]
+        vals = sm[box][part]
+        # Its ridge: the segment is wider than a process thinner than the CT resolves, and its
+        # voxels beside the ridge are the tissue around it.
+        peak = float(np.percentile(vals, PROCESS_PEAK_PERCENTILE))
+        contrast = float(vals.mean() - sm[box][shell].mean()) if shell.any() else 0.0
+        at = np.argwhere(part)[np.argmax(dist[box][part])] + [s.start for s in box]
+        rec = {"voxels": int(part.sum()), "reach_mm": float(dist[box][part].max()),
+               "peak_hu": peak, "contrast_hu": contrast,
+               "at": [float(v) for v in at[::-1] * d]}
+        rec["joined"] = bool(peak > soft and contrast >= min_contrast)
+        records.append(rec)
+        if rec["joined"]:
+            out |= parts == j
+    if out.any():
+        # The segment's voxels that join the processes to the bone: grown back through the
+        # segment's margin (one step more than it is wide).
+        steps = int(np.ceil(margin_mm / d)) + 1
+        out = ndimage.binary_dilation(out, structure=np.ones((3, 3, 3), bool), iterations=steps,
+                                      mask=rest) | out
+    return out, records
