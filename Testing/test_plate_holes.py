@@ -174,6 +174,25 @@ def test_a_process_of_the_segment_the_ct_does_not_show_as_bone_is_not_joined(rod
     assert len(records) == 1 and not records[0]["joined"] and not mask.any(), records
 
 
+def test_a_thick_part_or_a_detached_piece_of_the_segment_is_no_process():
+    """A block of the segment 9 voxels across beyond the bone (a bone's larger part beyond a
+    gap, a separate piece), and the tail cut off from the bone by a gap in the segment, bright
+    as they are: not joined."""
+    label, ball, sm, rod = _process_scene(rod_hu=250.0)
+    z, y, x = np.indices(label.shape)
+    block = (np.abs(y - 20) <= 4) & (np.abs(z - 20) <= 4) & (x >= 36) & (x <= 50)
+    sm = sm.copy()
+    sm[block] = 250.0
+    mask, records = plates.segment_processes(ball | block | rod, ball, sm, 1.0, reach_mm=8.0,
+                                             margin_mm=3.0, soft=50.0, min_contrast=60.0)
+    assert not mask.any() and len(records) == 1, records
+    assert records[0]["across_mm"] > 6.0 and records[0]["attached"]
+    cut = label & ~((x >= 31) & (x <= 36))
+    mask, records = plates.segment_processes(cut, ball, sm, 1.0, reach_mm=8.0, margin_mm=3.0,
+                                             soft=50.0, min_contrast=60.0)
+    assert not mask.any() and len(records) == 1 and not records[0]["attached"], records
+
+
 def test_a_generous_margin_is_no_process():
     """A segment 2 voxels wider than the bone all round (a coarse label's margin) reaches less
     far than the bound: nothing is examined."""

@@ -666,7 +666,9 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
     margin does not), and the CT supports it: on the smoothed CT its ridge (the
     PROCESS_PEAK_PERCENTILE-th percentile of its voxels) is above the soft tissue's level
     ``soft``, and its mean stands at least ``min_contrast`` above the mean of the tissue just
-    outside the segment around it. A part of the segment into soft tissue (a
+    outside the segment around it; and it is a process: at most 2 ``margin_mm`` across in the
+    segment (a bone's larger part beyond a gap is no process), and attached to the bone
+    through the segment. A part of the segment into soft tissue (a
     leak along a muscle), fat or a dark canal does not. What is joined is the part beyond
     ``margin_mm`` of the bone (the segment's margin, where the bone's own surface decides)
     with the segment's voxels that join it to the bone.
@@ -687,10 +689,13 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
     Returns
     -------
     (mask, records): the processes' voxels (z, y, x bool, same shape) and one dict each
-    (``voxels``, ``reach_mm``, ``peak_hu``, ``contrast_hu``, ``at``: its farthest voxel,
+    (``voxels``, ``reach_mm``, ``across_mm``, ``peak_hu``, ``contrast_hu``, ``attached``,
+    ``at``: its farthest voxel,
     x-y-z mm of the box), supported or not (``joined``).
     """
     from ..mesh.distance import distance_outside
+
+    from ..mesh.distance import distance_inside
 
     d = float(spacing)
     out = np.zeros(label.shape, bool)
@@ -698,7 +703,8 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
     if not n:
         return out, []
     main = pieces == (int(np.argmax(np.bincount(pieces.ravel())[1:])) + 1)
-    rest = label & ~main
+    del pieces
+    rest = label & ~bone
     if not rest.any():
         return out, []
     dist = distance_outside(main) * d
@@ -709,11 +715,15 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
     far = ndimage.maximum(dist, parts, index=np.arange(1, m + 1))
     records = []
     boxes = ndimage.find_objects(parts)
+    depth = None
+    steps = int(np.ceil(margin_mm / d)) + 1  # back through the segment's margin to the bone
     for j in np.flatnonzero(np.asarray(far) > reach_mm) + 1:
-        box = boxes[j - 1]
-        grow = PROCESS_SHELL_VOXELS + 1
+        if depth is None:
+            # how deep in the segment: a process is at most about two of its voxels across
+            depth = distance_inside(np.pad(label, 1))[1:-1, 1:-1, 1:-1] * d
+        grow = max(PROCESS_SHELL_VOXELS, steps) + 1
         box = tuple(slice(max(s.start - grow, 0), min(s.stop + grow, n_)) for s, n_ in
-                    zip(box, label.shape))
+                    zip(boxes[j - 1], label.shape))
         part = parts[box] == j
         shell = dilate_cube(part, PROCESS_SHELL_VOXELS) & ~label[box] & ~bone[box]
         vals = sm[box][part]
@@ -721,18 +731,18 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
         # voxels beside the ridge are the tissue around it.
         peak = float(np.percentile(vals, PROCESS_PEAK_PERCENTILE))
         contrast = float(vals.mean() - sm[box][shell].mean()) if shell.any() else 0.0
+        # The segment's voxels that join it to the bone: grown back through the margin.
+        joined = ndimage.binary_dilation(part, structure=np.ones((3, 3, 3), bool),
+                                         iterations=steps, mask=rest[box]) | part
         at = np.argwhere(part)[np.argmax(dist[box][part])] + [s.start for s in box]
         rec = {"voxels": int(part.sum()), "reach_mm": float(dist[box][part].max()),
+               "across_mm": float(2.0 * depth[box][part].max()),
                "peak_hu": peak, "contrast_hu": contrast,
+               "attached": bool((dilate_cube(joined, 1) & main[box]).any()),
                "at": [float(v) for v in at[::-1] * d]}
-        rec["joined"] = bool(peak > soft and contrast >= min_contrast)
+        rec["joined"] = bool(rec["attached"] and rec["across_mm"] <= 2.0 * margin_mm
+                             and peak > soft and contrast >= min_contrast)
         records.append(rec)
         if rec["joined"]:
-            out |= parts == j
-    if out.any():
-        # The segment's voxels that join the processes to the bone: grown back through the
-        # segment's margin (one step more than it is wide).
-        steps = int(np.ceil(margin_mm / d)) + 1
-        out = ndimage.binary_dilation(out, structure=np.ones((3, 3, 3), bool), iterations=steps,
-                                      mask=rest) | out
+            out[box] |= joined
     return out, records
