@@ -188,6 +188,7 @@ def test_a_thick_part_or_a_detached_piece_of_the_segment_is_no_process():
     assert not mask.any() and len(records) == 1, records
     assert records[0]["across_mm"] > 6.0 and records[0]["attached"]
     cut = label & ~((x >= 31) & (x <= 36))
+    _, _, sm, _ = _process_scene(rod_hu=250.0)
     mask, records = plates.segment_processes(cut, ball, sm, 1.0, reach_mm=8.0, margin_mm=3.0,
                                              soft=50.0, min_contrast=60.0)
     assert not mask.any() and len(records) == 1 and not records[0]["attached"], records

@@ -689,9 +689,9 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
     Returns
     -------
     (mask, records): the processes' voxels (z, y, x bool, same shape) and one dict each
-    (``voxels``, ``reach_mm``, ``across_mm``, ``peak_hu``, ``contrast_hu``, ``attached``,
-    ``at``: its farthest voxel,
-    x-y-z mm of the box), supported or not (``joined``).
+    (``voxels``, ``reach_mm``, ``peak_hu``, ``contrast_hu``, ``at``: its farthest voxel, x-y-z
+    mm of the box; where the CT supports it ``across_mm`` and ``attached``), joined or not
+    (``joined``).
     """
     from ..mesh.distance import distance_outside
 
@@ -709,18 +709,15 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
         return out, []
     dist = distance_outside(main) * d
     beyond = rest & (dist > margin_mm)
-    parts, m = ndimage.label(beyond, structure=np.ones((3, 3, 3), bool))
-    if not m:
+    if not (beyond & (dist > reach_mm)).any():
         return out, []
-    far = ndimage.maximum(dist, parts, index=np.arange(1, m + 1))
+    parts, m = ndimage.label(beyond, structure=np.ones((3, 3, 3), bool))
+    reaching = np.unique(parts[beyond & (dist > reach_mm)])
     records = []
     boxes = ndimage.find_objects(parts)
-    depth = None
+    depth = pieces = with_bone = along = None
     steps = int(np.ceil(margin_mm / d)) + 1  # back through the segment's margin to the bone
-    for j in np.flatnonzero(np.asarray(far) > reach_mm) + 1:
-        if depth is None:
-            # how deep in the segment: a process is at most about two of its voxels across
-            depth = distance_inside(np.pad(label, 1))[1:-1, 1:-1, 1:-1] * d
+    for j in reaching[reaching > 0]:
         grow = max(PROCESS_SHELL_VOXELS, steps) + 1
         box = tuple(slice(max(s.start - grow, 0), min(s.stop + grow, n_)) for s, n_ in
                     zip(boxes[j - 1], label.shape))
@@ -731,18 +728,26 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
         # voxels beside the ridge are the tissue around it.
         peak = float(np.percentile(vals, PROCESS_PEAK_PERCENTILE))
         contrast = float(vals.mean() - sm[box][shell].mean()) if shell.any() else 0.0
-        # The segment's voxels that join it to the bone: grown back through the margin.
-        joined = ndimage.binary_dilation(part, structure=np.ones((3, 3, 3), bool),
-                                         iterations=steps, mask=rest[box]) | part
         at = np.argwhere(part)[np.argmax(dist[box][part])] + [s.start for s in box]
         rec = {"voxels": int(part.sum()), "reach_mm": float(dist[box][part].max()),
-               "across_mm": float(2.0 * depth[box][part].max()),
                "peak_hu": peak, "contrast_hu": contrast,
-               "attached": bool((dilate_cube(joined, 1) & main[box]).any()),
-               "at": [float(v) for v in at[::-1] * d]}
-        rec["joined"] = bool(rec["attached"] and rec["across_mm"] <= 2.0 * margin_mm
-                             and peak > soft and contrast >= min_contrast)
+               "at": [float(v) for v in at[::-1] * d], "joined": False}
         records.append(rec)
-        if rec["joined"]:
-            out[box] |= joined
+        if not (peak > soft and contrast >= min_contrast):
+            continue  # the CT does not show it as bone (the tests below cost more)
+        if depth is None:
+            # how deep in the segment: a process is at most about two of its voxels across
+            depth = distance_inside(np.pad(label, 1))[1:-1, 1:-1, 1:-1] * d
+            # attached: in a piece of the segment with the bone (crumbs of bone the thresholds
+            # hold along a faint process split it into parts, each attached)
+            pieces, _ = ndimage.label(label | main, structure=np.ones((3, 3, 3), bool))
+            with_bone = np.unique(pieces[main])
+            along = label & ~main
+        rec["across_mm"] = float(2.0 * depth[box][part].max())
+        rec["attached"] = bool(np.isin(pieces[box][part][0], with_bone))
+        if rec["attached"] and rec["across_mm"] <= 2.0 * margin_mm:
+            rec["joined"] = True
+            # the segment's voxels that join it to the bone: grown back through the margin
+            out[box] |= ndimage.binary_dilation(part, structure=np.ones((3, 3, 3), bool),
+                                                iterations=steps, mask=along[box]) | part
     return out, records
