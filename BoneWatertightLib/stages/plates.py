@@ -667,11 +667,11 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
     PROCESS_PEAK_PERCENTILE-th percentile of its voxels) is above the soft tissue's level
     ``soft``, and its mean stands at least ``min_contrast`` above the mean of the tissue just
     outside the segment around it; and it is a process: at most 2 ``margin_mm`` across in the
-    segment (a bone's larger part beyond a gap is no process), and attached to the bone
-    through the segment. A part of the segment into soft tissue (a
-    leak along a muscle), fat or a dark canal does not. What is joined is the part beyond
-    ``margin_mm`` of the bone (the segment's margin, where the bone's own surface decides)
-    with the segment's voxels that join it to the bone.
+    segment (a bone's larger part beyond a gap is no process), and in one piece of the segment
+    with the bone. A part of the segment into soft tissue (a leak along a muscle), fat or a
+    dark canal is not joined. What is joined is the part beyond ``margin_mm`` of the bone (the
+    segment's margin, where the bone's own surface decides) with the segment's voxels that
+    join it to the bone.
 
     Parameters
     ----------
@@ -693,9 +693,7 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
     mm of the box; where the CT supports it ``across_mm`` and ``attached``), joined or not
     (``joined``).
     """
-    from ..mesh.distance import distance_outside
-
-    from ..mesh.distance import distance_inside
+    from ..mesh.distance import distance_inside, distance_outside
 
     d = float(spacing)
     out = np.zeros(label.shape, bool)
@@ -711,7 +709,7 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
     beyond = rest & (dist > margin_mm)
     if not (beyond & (dist > reach_mm)).any():
         return out, []
-    parts, m = ndimage.label(beyond, structure=np.ones((3, 3, 3), bool))
+    parts, _ = ndimage.label(beyond, structure=np.ones((3, 3, 3), bool))
     reaching = np.unique(parts[beyond & (dist > reach_mm)])
     records = []
     boxes = ndimage.find_objects(parts)

@@ -418,7 +418,7 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str,
     ``where_text``: optional callable giving a place of the box (x-y-z mm) as text for a
     message)."""
     advice = _threshold_advice(estimated)
-    max_exc = band_mm + EXCURSION_COARSENESS * coarseness + EXCURSION_MM
+    max_exc = band_mm + reach_bound_mm(coarseness)
     p.bounds = {"missing_fraction_max": MAX_MISSING_FRACTION,
                 "unlabelled_fraction_max": MAX_UNLABELLED_FRACTION,
                 "untouched_fraction_max": MAX_UNTOUCHED_FRACTION,
