@@ -814,10 +814,16 @@ def test_a_thin_process_of_the_segment_the_surface_stops_short_of_is_warned():
     assert "the segment reaches 19" in text and "beyond the surface" in text, text
     assert "farthest at x = 49" in text, text
     assert plausibility.reach_bound_mm(2.0) == pytest.approx(6.0)
-    for inside, segment in ((_ball(shape, (20, 20, 20), 9), label), (surface | rod, label | rod)):
+    # a strand of the segment one voxel across, 7 mm out: farther than the bound by less than
+    # one of the segment's voxels (c^3 = 8 mm^3) - its stair step, not warned
+    strand = np.zeros(shape, bool)
+    strand[20, 20, 30:38] = True
+    cases = ((_ball(shape, (20, 20, 20), 9), label), (surface | rod, label | rod),
+             (surface, label | strand))
+    for inside, segment in cases:
         p = _measure(inside, segment)
         assert not any("beyond the surface" in w for w in p.warnings), p.warnings
-        assert p.segment_reach_mm < 6.0
+    assert p.segment_reach_mm == pytest.approx(7.0) and p.segment_reach_ml < 0.008
 
 
 def test_a_missing_half_fails():

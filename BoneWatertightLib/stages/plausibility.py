@@ -35,7 +35,8 @@ stair-stepped by up to c; a rough user segment is smaller than the bone):
   thin process that the surface stops short of (a coccygeal tail, a transverse process's tip or
   an iliac crest on thick slices, whose blurred cortex is below HT) passes them unseen; beyond
   the excursion bound's EXCURSION_COARSENESS x c + EXCURSION_MM (the farthest a segment that
-  coarse misplaces the bone's border) it is a warning with its volume and place.
+  coarse misplaces the bone's border), by at least one of its voxels (c^3), it is a warning with
+  its volume and place.
 
 :func:`gate` turns them into problems with advice; the pipeline fails on them, or only warns when
 the user allows it (``on_implausible = "warn"``). Cut faces (caps) lie at the image boundary: the
@@ -521,7 +522,9 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str,
             "competes) and check the surface there")
     reach = reach_bound_mm(coarseness)
     p.bounds["segment_reach_warn_mm"] = reach
-    if p.segment_reach_mm > reach and not problems:
+    # (less than one of the segment's own voxels out there is its stair step, not a process)
+    if p.segment_reach_mm > reach and 1000.0 * p.segment_reach_ml >= coarseness ** 3 \
+            and not problems:
         p.warnings.append(
             f"{name}: the segment reaches {p.segment_reach_mm:.1f} mm beyond the surface "
             f"({1000 * p.segment_reach_ml:.0f} mm^3 of it farther than {reach:.1f} mm, the most "
