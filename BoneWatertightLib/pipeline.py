@@ -773,11 +773,9 @@ def segment_processes(run: _Run, ws: Workspace, bone: BoneWork) -> None:
     """Thin processes of the segment beyond the thresholded bone that the CT shows as a faint
     bright structure (stages.plates.segment_processes) join the bone's masks as the plates do,
     as label-only bone (the segment gives their shape)."""
-    masks, d, own, k = bone.masks, ws.d, ws.own, bone.k
+    masks, d, k = bone.masks, ws.d, bone.k
     box = masks.box
-    label = (ws.labels[box] == k) & ((own.owner[box] == 0) | (own.owner[box] == k))
-    if own.unsupported is not None:
-        label &= ~own.unsupported[box]
+    label = _trusted_segment(ws, k, box)
     planes = ws.prep.caps.get(k, [])
     if planes:
         label &= _plaus.image_mask(box, planes, d)
@@ -808,6 +806,16 @@ def segment_processes(run: _Run, ws: Workspace, bone: BoneWork) -> None:
                            "below HT (a tail or a tip thinner than the CT resolves), were joined "
                            f"with the segment's shape ({float(procs.sum()) * d ** 3:.0f} mm^3)",
                            len(joined), "processes", where)
+
+
+def _trusted_segment(ws: Workspace, k: int, box: tuple) -> np.ndarray:
+    """Bone k's segment on ``box`` (slices of the working grid) as far as it is evidence:
+    not given to another bone, not a part the CT shows as soft tissue. (z, y, x) bool."""
+    own = ws.own
+    trusted = (ws.labels[box] == k) & ((own.owner[box] == 0) | (own.owner[box] == k))
+    if own.unsupported is not None:
+        trusted &= ~own.unsupported[box]
+    return trusted
 
 
 def _lps_text(grid, point_grid_mm: np.ndarray) -> str:
@@ -946,10 +954,7 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
     # M0 joins what Poisson at depth <= 7 cannot resolve (a plate of a few voxels in a long
     # bone) and, where it then has tunnels its segment does not have, the segment (box
     # coordinates).
-    trusted = (ws.labels[masks.box] == k) & ((own.owner[masks.box] == 0)
-                                             | (own.owner[masks.box] == k))
-    if own.unsupported is not None:
-        trusted &= ~own.unsupported[masks.box]
+    trusted = _trusted_segment(ws, k, masks.box)
     # The segment's tunnels counted at its own resolution (its stair steps and holes smaller
     # than that are no tunnels of the bone: plausibility.segment_genus), on a thread beside the
     # normals and the carved region, which do not depend on it. The carve: where neither the
