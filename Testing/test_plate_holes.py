@@ -205,6 +205,43 @@ def test_a_generous_margin_is_no_process():
     assert records == [] and not mask.any()
 
 
+def test_a_staircase_process_along_crumbs_of_bone_is_joined_solid_to_the_bone():
+    """A coarse segment's oblique tail: blocks of 3 voxels (its own voxels) in a staircase,
+    each touching the next only along an edge, along a faint rod the CT shows (500 HU, 2 voxels across, in fat)
+    whose first 10 mm the thresholds hold as a chain of single voxels (crumbs, 26-connected to
+    the bone). The process is found beyond the crumbs' end; what is joined carries it back
+    along them to the bone with the segment's width (not a thread of crumbs, which the
+    surface's smoothing cuts): every cross-section from
+    the bone to the tip holds at least 6 voxels (the segment's 9), in one piece with the bone."""
+    shape = (40, 40, 70)
+    z, y, x = np.indices(shape)
+    ball = (x - 20) ** 2 + (y - 20) ** 2 + (z - 20) ** 2 <= 100
+    tail = np.zeros(shape, bool)
+    for i in range(10):  # blocks at x 28-57, alternately at y 18-20 and 21-23
+        y0 = 18 + 3 * (i % 2)
+        tail[19:22, y0:y0 + 3, 28 + 3 * i:31 + 3 * i] = True
+    label = ball | tail
+    crumbs = np.zeros(shape, bool)
+    crumbs[20, 20, 30:41] = True
+    crumbs[20, 21, 30:41:2] = True
+    bone = ball | crumbs
+    ct = np.full(shape, -80.0, np.float32)
+    ct[(np.abs(y - 20.5) <= 1.0) & (np.abs(z - 20) <= 1) & (x >= 28) & (x <= 57)] = 500.0
+    ct[ball] = 700.0
+    ct += np.random.default_rng(3).normal(0.0, 20.0, shape).astype(np.float32)
+    sm = ndimage.gaussian_filter(ct, 1.0)
+    mask, records = plates.segment_processes(label, bone, sm, 1.0, reach_mm=8.0, margin_mm=3.0,
+                                             soft=50.0, min_contrast=60.0)
+    assert any(r["joined"] for r in records), records
+    joined = mask | bone
+    pieces, _ = ndimage.label(joined, structure=np.ones((3, 3, 3), bool))
+    one = pieces == pieces[20, 20, 20]
+    assert one[20, 22, 56], "the tip is not joined to the bone"
+    across = one[:, :, 31:57].sum(axis=(0, 1))
+    assert across.min() >= 6, across
+    assert not (mask & ~label).any()
+
+
 def _tail_ct(rod_hu: float, seed: int = 0):
     """(CT, segment) as sitk images, 2 mm voxels: a ball of bone (cortex 2 mm at 1100 HU,
     250 HU inside, radius 13 mm) in fat (-80 HU) with a tail 1 mm across and 32 mm long at

@@ -748,4 +748,33 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
             # the segment's voxels that join it to the bone: grown back through the margin
             out[box] |= ndimage.binary_dilation(part, structure=np.ones((3, 3, 3), bool),
                                                 iterations=steps, mask=along[box]) | part
+    if out.any():
+        out |= _process_stems(out, label, along, depth, margin_mm, steps,
+                              int(np.ceil(reach_mm / d)))
     return out, records
+
+
+def _process_stems(process: np.ndarray, label: np.ndarray, along: np.ndarray,
+                   depth: np.ndarray, margin_mm: float, steps: int, reach: int) -> np.ndarray:
+    """The segment's voxels that carry a joined process back to where the segment widens into
+    the bone. Crumbs of thresholded bone along a faint process are 26-connected to the bone,
+    so the segment around them lies within the margin of "the bone" and the process is joined
+    only beyond their end: the surface would pinch to the crumbs there. Added: the segment
+    within ``reach`` voxels of the process through voxels where it is a process all around
+    (none within ``steps`` deeper in it than ``margin_mm``: a process is at most 2
+    ``margin_mm`` across), and from there, as from the process, ``steps`` voxels back through
+    the segment beside the bone (``along``) to the bone. (z, y, x) bool; ``depth``: the
+    segment's depth (mm)."""
+    idx = np.argwhere(process)
+    grow = reach + 2 * steps
+    lo = np.maximum(idx.min(0) - grow, 0)
+    hi = np.minimum(idx.max(0) + grow + 1, process.shape)
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    cube = np.ones((3, 3, 3), bool)
+    thin = label[box] & (ndimage.maximum_filter(depth[box], size=2 * steps + 1) <= margin_mm)
+    stem = ndimage.binary_dilation(process[box], structure=cube, iterations=reach, mask=thin)
+    out = np.zeros(process.shape, bool)
+    out[box] = ndimage.binary_dilation(stem, structure=cube, iterations=steps,
+                                       mask=along[box] | stem) & ~process[box]
+    return out
+
