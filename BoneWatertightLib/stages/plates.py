@@ -671,7 +671,8 @@ def segment_processes(label: np.ndarray, bone: np.ndarray, sm: np.ndarray, spaci
     with the bone. A part of the segment into soft tissue (a leak along a muscle), fat or a
     dark canal is not joined. What is joined is the part beyond ``margin_mm`` of the bone (the
     segment's margin, where the bone's own surface decides) with the segment's voxels that
-    join it to the bone.
+    join it to the bone, and its stem (:func:`_process_stems`: the segment along the crumbs of
+    thresholded bone that the process goes on from, to where the segment widens).
 
     Parameters
     ----------
