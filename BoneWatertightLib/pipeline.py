@@ -588,8 +588,8 @@ def filter_stage(run: _Run, ws: Workspace) -> None:
     run.stage("filter")
     with timed(run.times, "filter", run.spans):
         d = ws.d
-        near = ndimage.binary_dilation(np.isin(ws.labels, ws.targets),
-                                       iterations=max(1, int(round(FILTER_REGION_MM / d))))
+        near = _threshold.dilate6(np.isin(ws.labels, ws.targets),
+                                  max(1, int(round(FILTER_REGION_MM / d))))
         ws.ct_f = hybrid_filter(ws.prep.ct, d, sigma=params.sigma, rho=params.rho, region=near)
 
 
@@ -744,13 +744,11 @@ def thin_plates(run: _Run, ws: Workspace, bone: BoneWork) -> None:
     region[sl] = reg
     box = masks.box
     # Inside or right along the segment (within half its coarseness), not another bone's.
-    along = ndimage.binary_dilation(
-        ws.labels[box] == k, structure=_threshold.SIX,
-        iterations=max(1, int(round(0.5 * ws.prep.coarseness / d))))
+    along = _threshold.dilate6(ws.labels[box] == k,
+                               max(1, int(round(0.5 * ws.prep.coarseness / d))))
     region = region[box] & along & ((own.owner[box] == 0) | (own.owner[box] == k))
     t_min = _plate_min_thickness(run.params, d)
-    resolved = ndimage.binary_erosion(masks.occupancy, structure=_threshold.SIX,
-                                      iterations=max(1, int(round(0.5 * t_min / d))))
+    resolved = _threshold.erode6(masks.occupancy, max(1, int(round(0.5 * t_min / d))))
     # A ridge as high as the label level always counts; fainter ones where the noise allows.
     # The smoothed CT is kept for M0's plate holes (_plate_holes: the same box and scale).
     bone.plate_ct = _plates.smooth_ct(ws.prep.ct[box], d, ws.prep.ct_spacing)

@@ -17,6 +17,7 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from BoneWatertightLib.mesh.distance import distance_inside, distance_outside, signed_distance
+from BoneWatertightLib.stages import threshold
 from BoneWatertightLib.stages.prepare import bspline_resample
 
 
@@ -301,7 +302,7 @@ def test_unsupported_parts_on_slabs_and_shifted_slices_equal_the_plain_filters(m
     parts, _ = ndimage.label(ndimage.gaussian_filter(rng.random((37, 21, 26)), 1.0) > 0.55,
                              structure=ownership.SIX)
     assert parts.max() > 3
-    assert np.array_equal(ownership._six_max(parts), ndimage.maximum_filter(
+    assert np.array_equal(threshold.six_max(parts), ndimage.maximum_filter(
         parts, footprint=ownership.SIX, mode="constant", cval=0))
     # A label with a false blob of soft tissue beside the bone (unsupported) and a marrow
     # inside its cortex (supported).
@@ -438,3 +439,34 @@ def test_dilate_cube_is_the_iterated_binary_dilation(steps):
         expected = ndimage.binary_dilation(m, structure=np.ones((3, 3, 3), bool),
                                            iterations=steps)
         assert np.array_equal(dilate_cube(m, steps), expected)
+
+
+@pytest.mark.parametrize("shape", [(23, 17, 31), (1, 12, 9), (2, 2, 2)])
+@pytest.mark.parametrize("steps", [1, 2, 3])
+def test_six_neighbour_morphology_by_shifts_equals_scipys(shape, steps):
+    """dilate6 / erode6 (shifted slices) and their compositions give scipy's iterated binary
+    dilation, erosion, closing and opening with the 6-neighbour cross, dilate18 / erode18 its
+    dilation and erosion with the 18-neighbourhood, the outside of the array as background - a
+    slab one voxel thin and a box smaller than the steps included."""
+    rng = np.random.default_rng(steps + len(shape) * sum(shape))
+    mask = ndimage.gaussian_filter(rng.random(shape), 0.8) > 0.5
+    six = threshold.SIX
+    assert mask.any()
+    assert np.array_equal(threshold.dilate6(mask, steps),
+                          ndimage.binary_dilation(mask, six, iterations=steps))
+    assert np.array_equal(threshold.erode6(mask, steps),
+                          ndimage.binary_erosion(mask, six, iterations=steps))
+    assert np.array_equal(threshold.erode6(threshold.dilate6(mask, steps), steps),
+                          ndimage.binary_closing(mask, six, iterations=steps))
+    assert np.array_equal(threshold.dilate6(threshold.erode6(mask, steps), steps),
+                          ndimage.binary_opening(mask, six, iterations=steps))
+    full = np.ones(shape, bool)
+    assert np.array_equal(threshold.erode6(full, steps),
+                          ndimage.binary_erosion(full, six, iterations=steps))
+    eighteen = ndimage.generate_binary_structure(3, 2)
+    assert np.array_equal(threshold.dilate18(mask, steps),
+                          ndimage.binary_dilation(mask, eighteen, iterations=steps))
+    assert np.array_equal(threshold.erode18(mask, steps),
+                          ndimage.binary_erosion(mask, eighteen, iterations=steps))
+    assert np.array_equal(threshold.erode18(full, steps),
+                          ndimage.binary_erosion(full, eighteen, iterations=steps))

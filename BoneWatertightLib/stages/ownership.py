@@ -61,7 +61,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull
 
-from .threshold import SIX, bbox_slices, paste_box, segment_region
+from .threshold import (SIX, bbox_slices, dilate6, erode6, paste_box, segment_region,
+                        six_max)
 from ..mesh.distance import distance_inside, distance_outside
 from ..threads import cpu_threads, thread_map
 
@@ -240,7 +241,7 @@ def unsupported_parts(ct: np.ndarray, label: np.ndarray, core: np.ndarray, spaci
     reach = np.unique(parts[cand & core])
     reach = reach[reach > 0]
     # Each shell voxel (not in any part, 6-adjacent to one) counts for the part it touches.
-    shell_of = _six_max(parts)
+    shell_of = six_max(parts)
     shell = (parts == 0) & (shell_of > 0)
     total = np.bincount(shell_of[shell], minlength=n + 1)
     bone = np.bincount(shell_of[shell & ~soft], minlength=n + 1)
@@ -251,19 +252,6 @@ def unsupported_parts(ct: np.ndarray, label: np.ndarray, core: np.ndarray, spaci
     pieces = [{"voxels": int(size[i]), "support": round(float(support[i]), 3)}
               for i in np.flatnonzero(bad)]
     return bad[parts], pieces
-
-
-def _six_max(a: np.ndarray) -> np.ndarray:
-    """The maximum of each voxel and its six face neighbours of a non-negative (z, y, x) array
-    (0 beyond the edges): ``maximum_filter(a, footprint=SIX, mode="constant", cval=0)`` by
-    shifted slices, measured 3x faster."""
-    out = a.copy()
-    for ax in range(a.ndim):
-        hi = tuple(slice(1, None) if k == ax else slice(None) for k in range(a.ndim))
-        lo = tuple(slice(None, -1) if k == ax else slice(None) for k in range(a.ndim))
-        np.maximum(out[hi], a[lo], out=out[hi])
-        np.maximum(out[lo], a[hi], out=out[lo])
-    return out
 
 
 def valley_map(ct: np.ndarray, spacing: float, radius_mm: float) -> np.ndarray:
@@ -718,7 +706,7 @@ def carry_joint_fits(ws: np.ndarray, fg: np.ndarray, ct: np.ndarray, cores: np.n
             if not flip.any():
                 continue
             comp, nc = ndimage.label(flip, structure=SIX)
-            touch = ndimage.binary_dilation(f & (w == mine), structure=SIX) & flip
+            touch = dilate6(f & (w == mine)) & flip
             keep = np.zeros(nc + 1, bool)
             keep[np.unique(comp[touch])] = True
             keep[0] = False
@@ -1453,7 +1441,7 @@ def _plate_in_span(piece: int, a: int, ws, labels, spacing: float, max_depth_mm:
         lab = lab[sl]
         # The hull of the label's outer voxels is the label's hull (eroded on its own box,
         # whose edge voxels are outer ones).
-        shell = lab & ~ndimage.binary_erosion(lab, SIX)
+        shell = lab & ~erode6(lab)
         pts = np.argwhere(shell) + np.array([s.start for s in sl])
         try:
             hulls[a] = ConvexHull(pts.astype(float)).equations if len(pts) >= 4 else None

@@ -38,7 +38,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from .threshold import dilate_cube
+from .threshold import dilate6, dilate_cube
 
 # Ridge scale: Gaussian sigma = max(working spacing, PLATE_SIGMA_FRACTION x the CT's finest
 # spacing) - the scale of the blur the plate has already had.
@@ -302,7 +302,7 @@ def soft_tissue_noise(sm: np.ndarray, exclude: np.ndarray, soft: float) -> float
     """Noise (HU, a robust standard deviation) of the smoothed CT ``sm`` in the soft tissue of
     its box: voxels within SOFT_WINDOW_HU of the soft-tissue level, away from ``exclude``
     (the bone and its region). Soft tissue's own texture counts as noise (an upper bound)."""
-    away = ~ndimage.binary_dilation(exclude, iterations=2)
+    away = ~dilate6(exclude, 2)
     v = sm[away & (np.abs(sm - soft) <= SOFT_WINDOW_HU)]
     if v.size < 100:
         return float(SOFT_WINDOW_HU / PLATE_NOISE_FACTOR)
