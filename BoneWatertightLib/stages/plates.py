@@ -481,8 +481,7 @@ def holes_across_plates(inside: np.ndarray, ct: np.ndarray, spacing: float, *,
     crest = np.zeros(inside.shape, bool)
     crest[tuple(_ridge_voxels(sm, cand, d, native, min_contrast).T)] = True
     del cand
-    crest = ndimage.binary_dilation(crest, structure=np.ones((3, 3, 3), bool)) & ~inside \
-        & ~exclude
+    crest = dilate_cube(crest, 1) & ~inside & ~exclude
     found, masks = [], []
     for plug in _tunnel_plugs(inside, crest, depth <= 1.75 * d):
         idx = np.argwhere(plug)
