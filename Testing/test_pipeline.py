@@ -424,6 +424,32 @@ def test_remesh_joins_a_process_of_the_bone_that_the_surface_missed():
     assert alone.vertices[:, 2].max() < 8.6
 
 
+def test_remesh_joins_a_thin_process_reaching_a_little_beyond_the_reach():
+    """A rod 2 mm across reaching 5 mm beyond the ball's solid (r 9 mm; the reach 2.5 mm, the
+    remesh grid ~0.8 mm): its part beyond the reach holds less than reach^3, which left the
+    whole rod out (the last 5 mm of a 3 mm transverse process), and is joined. A bump as
+    as thick but less than a grid step beyond the reach is not (the solid's rough rim)."""
+    from BoneWatertightLib.stages.poisson import Fusion
+
+    h = 0.5
+    g = (np.arange(72) - 35.5) * h
+    zz, yy, xx = np.meshgrid(g, g, g, indexing="ij")
+    r = np.sqrt(xx ** 2 + yy ** 2 + zz ** 2)
+    ball = sphere_mesh(8.0, 0.5)
+
+    def run(extra):
+        fusion = Fusion(label_origin=np.array([g[0]] * 3), label_spacing=h,
+                        solid=(r <= 9.0) | extra, solid_reach_mm=2.5)
+        return remesh(ball, 0.6, fusion=fusion), fusion.info
+
+    out, info = run((np.hypot(xx, yy) <= 1.0) & (zz > 0) & (zz <= 13.0))
+    assert info["joined_pieces"] == 1 and out.vertices[:, 2].max() > 12.0
+    side = np.abs(out.vertices[:, 2]) < 2.0
+    assert np.linalg.norm(out.vertices[side], axis=1).max() < 8.6   # no rim joined
+    out, info = run((r <= 10.6) & (zz > 0.985 * r))                   # a cap ~4 mm across
+    assert info["joined_pieces"] == 0 and out.vertices[:, 2].max() < 8.6
+
+
 def test_remesh_joins_a_process_whose_thin_poisson_neck_the_smoothing_cuts():
     """Poisson made a ball (r 8 mm) with a process as a thread 2 mm across (12 mm long): the
     remesh grid (1.33 mm) holds the thread, but its smoothing cuts it, and the contour keeps

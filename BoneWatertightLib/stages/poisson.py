@@ -544,8 +544,11 @@ def _join_missed_bone(occ: np.ndarray, lo, h: float, fusion: Fusion,
                       kept: np.ndarray) -> np.ndarray:
     """occ joined by the bone of ``fusion.solid`` it misses where that bone reaches farther
     than ``fusion.solid_reach_mm`` from it (a process, not the partial-volume shell along the
-    surface), at least reach^3 of it so far out, connected to occ through the solid: that
-    far part with the solid between it and occ (within the reach of the far part).
+    surface), connected to occ through the solid, with at least reach^3 of it so far out, or
+    a process about the reach across (thinner than the CT resolves) going on at least a grid
+    step h beyond the reach: reach^2 x h of it so far out, and part of it farther than
+    reach + h (reach^3 alone lost a 3 mm transverse process's last 5 mm): that far part with
+    the solid between it and occ (within the reach of the far part).
     ``kept``: what of occ the contour keeps (the largest piece of its smoothed occupancy): the
     bone is measured against it (a process whose neck the smoothing cuts is missed beyond the
     neck, though occ still holds a thin thread of it)."""
@@ -561,7 +564,10 @@ def _join_missed_bone(occ: np.ndarray, lo, h: float, fusion: Fusion,
         return occ
     pieces, n = ndimage.label(missed, structure=np.ones((3, 3, 3), bool))
     touching = np.unique(pieces[missed & (dist_occ <= 1.5 * h)])
-    big = np.bincount(pieces[far], minlength=n + 1) * h ** 3 >= reach ** 3
+    far_mm3 = np.bincount(pieces[far], minlength=n + 1) * h ** 3
+    farthest = np.zeros(n + 1)
+    farthest[1:] = ndimage.maximum(np.where(far, dist_occ, 0.0), pieces, np.arange(1, n + 1))
+    big = (far_mm3 >= reach ** 3) | ((far_mm3 >= reach * reach * h) & (farthest > reach + h))
     ids = np.intersect1d(np.flatnonzero(big), touching[touching > 0])
     if not len(ids):
         fusion.info.update(joined_bone_mm3=0.0, joined_pieces=0)
