@@ -52,7 +52,8 @@ TRIM_ROUNDS = 3
 # A determined sphere is carried beyond its seen points, so it must predict them: fitted to the
 # seen points outside each of this many sectors (of angle about their centroid, along the
 # surface), the points of that sector lie within the fit's own RMS limit of it. A ball joint's
-# seen ring passes (3 mm pelvis phantoms' hips: at most 1.8-2.1 mm RMS against 2.25); a
+# seen ring passes (the hips of 3 mm pelvis phantoms and of the real 3 mm CT: worst sector
+# 1.3-2.05 mm RMS against 2.25; the 2.5 mm-slice joint phantoms 0.3-0.5 against 0.88); a
 # sacro-iliac joint, curved but no ball, that a sphere fits to 1.44 mm, does not (2.6-6.9 mm:
 # carried over its contact it put the sacrum 7.5 mm into the hip bone).
 SPHERE_CHECK_SECTORS = 4
@@ -312,7 +313,8 @@ def fit_joint_surface(points: np.ndarray, voxel: float, resolution: float = 0.0,
         worst = _held_out_rms(p, q0, voxel)
         if worst > limit:
             return refuse(f"no ball: the sphere fitted to the rest of the seen joint space misses "
-                          f"a quarter of it by {worst:.2f} mm RMS (at most {limit:.2f} mm)")
+                          f"one of its {SPHERE_CHECK_SECTORS} sectors by {worst:.2f} mm RMS "
+                          f"(at most {limit:.2f} mm)")
     pts = p[keep]
     if kind == "sphere":
         c, r, _ = res
