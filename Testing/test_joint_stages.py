@@ -749,15 +749,16 @@ def _ball(shape, centre, r):
     return (x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2 <= r * r
 
 
-def _measure(inside, label, where_text=None, **kw):
+def _measure(inside, label, where_text=None, coarseness=2.0, **kw):
     verts = np.argwhere(inside & ~np.pad(inside, 1)[1:-1, 1:-1, 2:])[:, ::-1].astype(float)
     none = np.zeros(label.shape, bool)
     p = plausibility.measure(inside, verts, label, none, kw.pop("cores", none),
                              np.ones(label.shape, bool), 1.0,
-                             volume_mm3=float(inside.sum()), coarseness=2.0, band_mm=3.0,
+                             volume_mm3=float(inside.sum()), coarseness=coarseness, band_mm=3.0,
                              edge_support=kw.pop("edge", 0.95),
                              threshold_reach=kw.pop("reach", 0.95), **kw)
-    return plausibility.gate(p, coarseness=2.0, band_mm=3.0, name="bone", where_text=where_text)
+    return plausibility.gate(p, coarseness=coarseness, band_mm=3.0, name="bone",
+                             where_text=where_text)
 
 
 def test_plausible_surface_passes():
@@ -824,6 +825,25 @@ def test_a_thin_process_of_the_segment_the_surface_stops_short_of_is_warned():
         p = _measure(inside, segment)
         assert not any("beyond the surface" in w for w in p.warnings), p.warnings
     assert p.segment_reach_mm == pytest.approx(7.0) and p.segment_reach_ml < 0.008
+
+
+def test_a_process_one_segment_voxel_across_just_beyond_the_bound_is_warned():
+    """A 3 mm segment's tail one of its voxels across (3 x 3 mm) reaching 10 mm beyond the
+    surface, 2 mm past the bound (2 c + 2 = 8 mm): 18 mm^3 of it lies past the bound - less
+    than one of the segment's voxels (27 mm^3), which kept it silent (a 3 mm coccygeal tail
+    cut 9.7 mm short) - and it goes on more than a grid step past the bound: warned. The
+    same tail reaching only 9 mm (a grid step past the bound) is not."""
+    shape = (40, 40, 70)
+    label = _ball(shape, (20, 20, 20), 10)
+    surface = _ball(shape, (20, 20, 20), 10.5)
+    for end, warned in ((40, True), (39, False)):
+        tail = np.zeros(shape, bool)
+        tail[19:22, 19:22, 30:end + 1] = True
+        p = _measure(surface, label | tail, coarseness=3.0)
+        assert p.ok, p.problems
+        said = any("beyond the surface" in w for w in p.warnings)
+        assert said == warned, (end, p.segment_reach_mm, p.segment_reach_ml, p.warnings)
+        assert 1000 * p.segment_reach_ml < 27
 
 
 def test_a_missing_half_fails():

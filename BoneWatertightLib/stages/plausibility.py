@@ -158,6 +158,8 @@ class Plausibility:
     segment_reach_mm: float = 0.0
     segment_reach_ml: float = 0.0
     segment_reach_at: list | None = None
+    # The step (mm) of the grid the segment's reach was measured on.
+    reach_grid_mm: float = 0.0
     unlabelled_bone_ml: float = 0.0
     # Bone outside every segment that continues this bone (merged, see ownership step 4) and
     # that the surface holds (ml): what the segment missed of it.
@@ -365,7 +367,7 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
         unsupported_segment_ml=unsupported_ml, unsupported_pieces=int(unsupported_pieces),
         segment_beyond_edge_ml=excused_ml,
         segment_reach_mm=reach_mm, segment_reach_ml=reach_ml, segment_reach_at=reach_at,
-        unlabelled_bone_ml=unlabelled_ml, added_bone_ml=added_ml)
+        reach_grid_mm=float(spacing), unlabelled_bone_ml=unlabelled_ml, added_bone_ml=added_ml)
     return p
 
 
@@ -522,9 +524,14 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str,
             "competes) and check the surface there")
     reach = reach_bound_mm(coarseness)
     p.bounds["segment_reach_warn_mm"] = reach
-    # (less than one of the segment's own voxels out there is its stair step, not a process)
-    if p.segment_reach_mm > reach and 1000.0 * p.segment_reach_ml >= coarseness ** 3 \
-            and not problems:
+    # (less than one of the segment's own voxels out there is its stair step, not a process -
+    # unless it is a process one of the segment's voxels across that goes on at least a grid
+    # step beyond the bound: a 3 mm coccygeal tail 9.5 mm beyond the surface held 15 mm^3)
+    step = p.reach_grid_mm
+    far_enough = (1000.0 * p.segment_reach_ml >= coarseness ** 3
+                  or (step > 0 and p.segment_reach_mm > reach + step
+                      and 1000.0 * p.segment_reach_ml >= coarseness ** 2 * step))
+    if p.segment_reach_mm > reach and far_enough and not problems:
         p.warnings.append(
             f"{name}: the segment reaches {p.segment_reach_mm:.1f} mm beyond the surface "
             f"({1000 * p.segment_reach_ml:.0f} mm^3 of it farther than {reach:.1f} mm, the most "
