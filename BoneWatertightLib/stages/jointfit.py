@@ -54,7 +54,7 @@ TRIM_ROUNDS = 3
 # surface), the points of that sector lie within the fit's own RMS limit of it. A ball joint's
 # seen ring passes (the hips of 3 mm pelvis phantoms and of the real 3 mm CT: worst sector
 # 1.1-2.05 mm RMS against 2.25; the 2.5 mm-slice joint phantoms 0.3-0.5) - but not with 3 mm
-# of the femur labelled hip (3.47 mm: the labels' split instead, the surfaces within 0.1 mm); a
+# of the femur labelled hip (3.47 mm: the labels' split instead, p95 / max within 0.11 mm); a
 # sacro-iliac joint, curved but no ball, that a sphere fits to 1.44 mm, does not (2.6-6.9 mm:
 # carried over its contact it put the sacrum 7.5 mm into the hip bone).
 SPHERE_CHECK_SECTORS = 4
