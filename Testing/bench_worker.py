@@ -31,6 +31,9 @@ Task kinds (keys besides ``kind``):
   segment, discrete flying edges + windowed sinc (baselines.segment_closed_surface).
 - ``cli``: ``argv``, ``log`` -> BoneWatertightLib.app.cli.main(argv), stdout/stderr to ``log``.
 
+Every kind runs with numpy's transparent-huge-page advice off, as the command line runs
+(BoneWatertightLib.app.run.tune_process_memory).
+
 ``cprofile: true`` runs the call under cProfile and returns the top functions.
 
 ``stage_memory: true`` (kinds ``reconstruct`` and ``many``, Linux) samples the process's memory
@@ -401,6 +404,13 @@ if __name__ == "__main__":
         sys.exit(0)
     with open(sys.argv[1], "rb") as fh:
         _task = pickle.load(fh)
+    # numpy's huge-page advice off for every kind, as the command line turns it off: the call,
+    # the command line and the baselines are timed alike.
+    if ROOT not in sys.path:
+        sys.path.insert(0, ROOT)
+    from BoneWatertightLib.app.run import tune_process_memory
+
+    tune_process_memory()
     _res = run_task(_task)
     with open(sys.argv[2], "wb") as fh:
         pickle.dump(_res, fh, protocol=pickle.HIGHEST_PROTOCOL)
