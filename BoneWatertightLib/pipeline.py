@@ -62,7 +62,7 @@ from .stages.refine import refine_to_edges
 from .stages.threshold import (BoneMasks, bone_masks, boundary_voxels, crossing_points,
                                erosions_to_separate, voxel_points)
 from .stages.visible import visible_points
-from .threads import cpu_threads, thread_map
+from .threads import cpu_threads, helper_processes_allowed, thread_map
 
 # The filter's percentile is taken within this distance (mm) of the targets.
 FILTER_REGION_MM = 3.0
@@ -346,6 +346,7 @@ class _Run:
     costs: dict = field(default_factory=dict)   # bone k -> bytes it may need (bone_schedule)
     budget: float = float("inf")                # bytes the bones at once may need
     spans: list = field(default_factory=list)   # (stage, k or None, start, end): see timed
+    poisson_helper: object = None               # stages.poisson.PoissonHelper, or None
 
     def stage(self, name: str) -> Progress:
         return _stage(self.progress, name)
@@ -521,14 +522,50 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     run.stage("open3d")
     with timed(run.times, "import_open3d", run.spans):
         import_open3d()  # first: a missing dependency fails before minutes of work
+    # Bones on two threads: their Poisson surfaces in a helper process where this process
+    # allows one (open3d holds the GIL; see PoissonHelper). Started now: its start-up overlaps
+    # the shared stages.
+    try:
+        several = len(set(targets)) > 1
+    except TypeError:  # not a sequence of labels: prepare_stage says so
+        several = False
+    if helper_processes_allowed() and several and cpu_threads(2) > 1:
+        run.poisson_helper = _poisson.PoissonHelper()
+    try:
+        return _reconstruct_many(run, t_all, ct, labels, targets, neighbours, names)
+    finally:
+        if run.poisson_helper is not None:
+            run.poisson_helper.close()
+
+
+def _reconstruct_many(run: _Run, t_all: float, ct, labels, targets, neighbours,
+                      names) -> JointResult:
     ws = prepare_stage(run, ct, labels, targets, neighbours, dict(names or {}))
     filter_stage(run, ws)
     threshold_stage(run, ws)
     ownership_stage(run, ws)
     run.threads, run.costs, run.budget = bone_schedule(ws, run.params.max_memory_gb)
     ws.prep.info["bone_threads"] = run.threads
+    helper = run.poisson_helper
+    if helper is not None:
+        # Kept while two bones run at once (else nothing to gain) and the memory limit has
+        # room for it beside the two largest bones; the bones' budget is then what it leaves.
+        top_two = sum(sorted(run.costs.values())[-2:])
+        room = run.budget - top_two >= _poisson.HELPER_MEMORY_GB * 1024 ** 3
+        if min(run.threads, len(ws.targets)) < 2 or not room:
+            helper.close()
+            run.poisson_helper = helper = None
+        else:
+            run.budget -= _poisson.HELPER_MEMORY_GB * 1024 ** 3
+    ws.prep.info["poisson_process"] = "helper" if helper is not None else "this"
     bones = run.each(ws.targets, run.stage("surfaces"),
                      lambda k, part: initial_surface_stage(run, ws, k, part))
+    if helper is not None:
+        helper.close()  # every M0 is made
+        if helper.error is not None:
+            ws.prep.info["poisson_process"] = "this"
+            run.fallbacks.add("poisson", f"the Poisson helper process failed ({helper.error}): "
+                              "the Poisson surfaces were computed in this process instead")
     territory_stage(run, ws, bones)
     deform_stage(run, ws, bones)
     release_grids(run, ws, bones)
@@ -1010,7 +1047,8 @@ def poisson_m0(run: _Run, ws: Workspace, bone: BoneWork, points: np.ndarray) -> 
         return fusion
 
     fusion = new_fusion()
-    m0, raw = initial_surface(points, normals, params.poisson_depth, edge, fusion=fusion)
+    m0, raw = initial_surface(points, normals, params.poisson_depth, edge, fusion=fusion,
+                              helper=run.poisson_helper)
     # M0's tunnels through a plate the CT shows across them (a wall the opening thinned away,
     # a plate below the thresholds): remeshed once more with the plates' plugs fused, kept
     # when that closes them.

@@ -45,3 +45,20 @@ def map_ahead(work, items, threads: int, name: str = "bonewatertight"):
                 yield pending.pop(0).result()
         while pending:
             yield pending.pop(0).result()
+
+
+# Whether this process may start helper processes (a fresh Python interpreter through
+# multiprocessing's spawn) for work that holds the GIL: only a process of its own says so (the
+# command line, :func:`BoneWatertightLib.app.run.configure_own_process`); a host application's
+# interpreter (3D Slicer's) may not be a Python that can be started so.
+_HELPER_PROCESSES = False
+
+
+def allow_helper_processes(allowed: bool = True) -> None:
+    """Let this process start helper processes (see :class:`..stages.poisson.PoissonHelper`)."""
+    global _HELPER_PROCESSES
+    _HELPER_PROCESSES = bool(allowed)
+
+
+def helper_processes_allowed() -> bool:
+    return _HELPER_PROCESSES

@@ -31,8 +31,8 @@ Task kinds (keys besides ``kind``):
   segment, discrete flying edges + windowed sinc (baselines.segment_closed_surface).
 - ``cli``: ``argv``, ``log`` -> BoneWatertightLib.app.cli.main(argv), stdout/stderr to ``log``.
 
-Every kind runs with numpy's transparent-huge-page advice off, as the command line runs
-(BoneWatertightLib.app.run.tune_process_memory).
+Every kind runs with the command line's process settings (numpy's transparent-huge-page advice
+off, several-bone runs' Poisson in a helper process: BoneWatertightLib.app.run.configure_own_process).
 
 ``cprofile: true`` runs the call under cProfile and returns the top functions.
 
@@ -404,13 +404,13 @@ if __name__ == "__main__":
         sys.exit(0)
     with open(sys.argv[1], "rb") as fh:
         _task = pickle.load(fh)
-    # numpy's huge-page advice off for every kind, as the command line turns it off: the call,
-    # the command line and the baselines are timed alike.
+    # the command line's process settings for every kind: the call, the command line and the
+    # baselines are timed alike.
     if ROOT not in sys.path:
         sys.path.insert(0, ROOT)
-    from BoneWatertightLib.app.run import tune_process_memory
+    from BoneWatertightLib.app.run import configure_own_process
 
-    tune_process_memory()
+    configure_own_process()
     _res = run_task(_task)
     with open(sys.argv[2], "wb") as fh:
         pickle.dump(_res, fh, protocol=pickle.HIGHEST_PROTOCOL)

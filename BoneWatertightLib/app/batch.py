@@ -181,9 +181,9 @@ def _worker_signal(signum, frame):
 
 
 def _init_worker() -> None:
-    """Worker processes: SIGINT, SIGTERM and SIGHUP cancel the task under way; numpy's
-    huge-page advice is off (:func:`run.tune_process_memory`)."""
-    run.tune_process_memory()
+    """Worker processes: SIGINT, SIGTERM and SIGHUP cancel the task under way; the settings of
+    a process of our own (:func:`run.configure_own_process`)."""
+    run.configure_own_process()
     for signum in run.CANCEL_SIGNALS:
         signal.signal(signum, _worker_signal)
 

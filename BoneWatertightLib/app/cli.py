@@ -218,7 +218,7 @@ def main(argv=None) -> int:
     SIGINT, SIGTERM and SIGHUP cancel the run (exit code 130) with every staged output
     removed.
     """
-    run.tune_process_memory()
+    run.configure_own_process()
     with run.cancel_on_signals():
         return _main(argv)
 

@@ -67,6 +67,16 @@ def tune_process_memory() -> bool:
     return False
 
 
+def configure_own_process() -> None:
+    """Settings for a process of this package's own (the command line, a batch worker): numpy's
+    huge-page advice off (:func:`tune_process_memory`), and several-bone runs may compute their
+    Poisson surfaces in a helper process (:class:`..stages.poisson.PoissonHelper`)."""
+    from ..threads import allow_helper_processes
+
+    tune_process_memory()
+    allow_helper_processes()
+
+
 def _import_pipeline(with_open3d: bool):
     from .. import pipeline
 
