@@ -522,15 +522,6 @@ def reconstruct_many(ct: sitk.Image, labels: sitk.Image, targets: Sequence[int],
     run.stage("open3d")
     with timed(run.times, "import_open3d", run.spans):
         import_open3d()  # first: a missing dependency fails before minutes of work
-    # Bones on two threads: their Poisson surfaces in a helper process where this process
-    # allows one (open3d holds the GIL; see PoissonHelper). Started now: its start-up overlaps
-    # the shared stages.
-    try:
-        several = len(set(targets)) > 1
-    except TypeError:  # not a sequence of labels: prepare_stage says so
-        several = False
-    if helper_processes_allowed() and several and cpu_threads(2) > 1:
-        run.poisson_helper = _poisson.PoissonHelper()
     try:
         return _reconstruct_many(run, t_all, ct, labels, targets, neighbours, names)
     finally:
@@ -546,17 +537,16 @@ def _reconstruct_many(run: _Run, t_all: float, ct, labels, targets, neighbours,
     ownership_stage(run, ws)
     run.threads, run.costs, run.budget = bone_schedule(ws, run.params.max_memory_gb)
     ws.prep.info["bone_threads"] = run.threads
+    # Bones on two threads: their Poisson surfaces in a helper process where this process
+    # allows one (open3d holds the GIL; see PoissonHelper) and the memory limit has room for
+    # it beside the two largest bones (the bones' budget is then what it leaves). Started
+    # now, its start-up (~1.5 s) overlaps the bones' threshold windows and visible points.
+    top_two = sum(sorted(run.costs.values())[-2:])
+    if (helper_processes_allowed() and min(run.threads, len(ws.targets)) > 1
+            and run.budget - top_two >= _poisson.HELPER_MEMORY_GB * 1024 ** 3):
+        run.budget -= _poisson.HELPER_MEMORY_GB * 1024 ** 3
+        run.poisson_helper = _poisson.PoissonHelper()
     helper = run.poisson_helper
-    if helper is not None:
-        # Kept while two bones run at once (else nothing to gain) and the memory limit has
-        # room for it beside the two largest bones; the bones' budget is then what it leaves.
-        top_two = sum(sorted(run.costs.values())[-2:])
-        room = run.budget - top_two >= _poisson.HELPER_MEMORY_GB * 1024 ** 3
-        if min(run.threads, len(ws.targets)) < 2 or not room:
-            helper.close()
-            run.poisson_helper = helper = None
-        else:
-            run.budget -= _poisson.HELPER_MEMORY_GB * 1024 ** 3
     ws.prep.info["poisson_process"] = "helper" if helper is not None else "this"
     bones = run.each(ws.targets, run.stage("surfaces"),
                      lambda k, part: initial_surface_stage(run, ws, k, part))

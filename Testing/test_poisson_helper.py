@@ -137,5 +137,5 @@ def test_no_helper_where_the_memory_limit_has_no_room_for_it(helpers_allowed, mo
     res = pipeline.reconstruct_many(ct, labels, [1, 2],
                                     dataclasses.replace(PARAMS, max_memory_gb=1.0), names=NAMES)
     assert all(b.ok for b in res.bones)
-    assert len(made) == 1 and made[0]._process is None  # started, then stopped at once
+    assert not made
     assert res.report.input["poisson_process"] == "this"

@@ -266,9 +266,10 @@ class PoissonHelper:
 
     open3d's Poisson holds the GIL for the whole computation (about a second a bone, during
     which the other bone's thread cannot run Python); in a process of its own it does not stop
-    the other bone. Measured on the real 3 mm L1-L5 (5 bones on 2 threads), six runs each,
-    interleaved: median 48.1 s (47.0-54.3) against 52.7 s (49.3-55.5) in this process, the same
-    surfaces. One surface at a time (a lock);
+    the other bone. Measured on the real 3 mm L1-L5 (5 bones on 2 threads), ten runs each,
+    interleaved in pairs on a machine whose speed swings by +-6 s: faster in 7 of the 10 pairs,
+    median of the pairs' differences 1.75 s, medians 48.1 s (43.5-57.5) against 51.9 s
+    (47.8-55.6) in this process; the same surfaces. One surface at a time (a lock);
     the helper starts when made (its imports overlap the run's first stages). Should it fail
     (it cannot start, dies, or answers with an error), :meth:`mesh` returns None from then on,
     ``error`` says why, and the caller computes the surface itself. :meth:`close` stops it.
