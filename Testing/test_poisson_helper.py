@@ -29,6 +29,20 @@ def helpers_allowed():
     threads.allow_helper_processes(before)
 
 
+@pytest.fixture
+def made(monkeypatch):
+    """The PoissonHelpers the run makes (real ones), in order."""
+    helpers = []
+    real = poisson.PoissonHelper
+
+    def spy():
+        helpers.append(real())
+        return helpers[-1]
+
+    monkeypatch.setattr(poisson, "PoissonHelper", spy)
+    return helpers
+
+
 def test_the_helper_computes_the_surface_this_process_computes():
     points, normals = _sphere_points()
     here = poisson.poisson_surface(points, normals, 5)
@@ -75,17 +89,9 @@ def test_the_library_starts_no_helper_unless_its_process_allows_it(monkeypatch):
 
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="bones run one at a time on one CPU")
-def test_bones_together_get_the_same_surfaces_through_the_helper(helpers_allowed, monkeypatch):
+def test_bones_together_get_the_same_surfaces_through_the_helper(helpers_allowed, made):
     from test_child_run import NAMES, PARAMS, two_balls
 
-    made = []
-    real = poisson.PoissonHelper
-
-    def spy():
-        made.append(real())
-        return made[-1]
-
-    monkeypatch.setattr(poisson, "PoissonHelper", spy)
     ct, labels, _ = two_balls()
     through = pipeline.reconstruct_many(ct, labels, [1, 2], PARAMS, names=NAMES)
     assert len(made) == 1 and made[0].error is None
@@ -118,19 +124,12 @@ def test_a_failed_helper_is_a_fallback_in_the_report(helpers_allowed, monkeypatc
 
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="bones run one at a time on one CPU")
-def test_no_helper_where_the_memory_limit_has_no_room_for_it(helpers_allowed, monkeypatch):
+def test_no_helper_where_the_memory_limit_has_no_room_for_it(helpers_allowed, made,
+                                                            monkeypatch):
     import dataclasses
 
     from test_child_run import NAMES, PARAMS, two_balls
 
-    made = []
-    real = poisson.PoissonHelper
-
-    def spy():
-        made.append(real())
-        return made[-1]
-
-    monkeypatch.setattr(poisson, "PoissonHelper", spy)
     # the bones' budget is the limit less what the process holds: here no room for the helper
     monkeypatch.setattr(pipeline, "_held_bytes", lambda: 0.9 * 1024 ** 3)
     ct, labels, _ = two_balls()
