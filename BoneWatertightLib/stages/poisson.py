@@ -270,7 +270,7 @@ class PoissonHelper:
     interleaved in pairs on a machine whose speed swings by +-6 s: faster in 7 of the 10 pairs,
     median of the pairs' differences 1.75 s, medians 48.1 s (43.5-57.5) against 51.9 s
     (47.8-55.6) in this process; the same surfaces. One surface at a time (a lock);
-    the helper starts when made (its imports overlap the run's first stages). Should it fail
+    the helper starts when made (its imports overlap the bones' first stages). Should it fail
     (it cannot start, dies, or answers with an error), :meth:`mesh` returns None from then on,
     ``error`` says why, and the caller computes the surface itself. :meth:`close` stops it.
     """
