@@ -66,6 +66,22 @@ def test_a_helper_that_died_says_why_and_the_surface_is_made_here():
     helper.close()  # again: harmless
 
 
+def test_a_helper_that_never_answers_is_given_up(monkeypatch):
+    # e.g. an interpreter that starts an application instead of the helper: alive, silent
+    import multiprocessing
+
+    points, normals = _sphere_points()
+    monkeypatch.setattr(poisson, "HELPER_START_TIMEOUT_S", 1.0)
+    helper = poisson.PoissonHelper()
+    silent, keep = multiprocessing.Pipe()  # nobody writes to ``keep``
+    helper._conn.close()
+    helper._conn = silent
+    assert helper.mesh(points, normals, 5) is None
+    assert "did not answer within 1 s" in helper.error
+    assert helper._process is None  # stopped
+    keep.close()
+
+
 def test_an_error_in_the_helper_is_the_error_of_this_process():
     # no points: open3d refuses them; the helper says so, and the same call here raises
     points, normals = np.zeros((0, 3)), np.zeros((0, 3))

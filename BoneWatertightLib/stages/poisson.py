@@ -259,6 +259,11 @@ def _poisson_mesh(points: np.ndarray, normals: np.ndarray, depth: int) -> tuple:
 # surfaces of the real 3 mm L1-L5 (VmHWM; 0.18 GB of it its own, the rest open3d's library
 # pages shared with this process).
 HELPER_MEMORY_GB = 0.35
+# A helper not ready (its imports done) this long after it was started is given up (s): a
+# process that is no Python of ours (an interpreter that starts an application) never answers.
+HELPER_START_TIMEOUT_S = 60.0
+# While it computes, the helper is checked alive this often (s).
+HELPER_POLL_S = 0.2
 
 
 class PoissonHelper:
@@ -282,6 +287,7 @@ class PoissonHelper:
         self._lock = threading.Lock()
         self._conn = None
         self._process = None
+        self._ready = False
         try:
             context = multiprocessing.get_context("spawn")
             self._conn, child = context.Pipe()
@@ -298,16 +304,40 @@ class PoissonHelper:
             if self.error is not None:
                 return None
             try:
+                if not self._ready:
+                    # its first message says its imports are done
+                    if self._answer(HELPER_START_TIMEOUT_S) is None:
+                        return None
+                    self._ready = True
                 self._conn.send((points, normals, int(depth)))
-                status, value = self._conn.recv()
+                answer = self._answer(None)
             except (OSError, EOFError, ValueError) as exc:
                 code = self._process.exitcode if self._process is not None else None
                 self._fail(f"it stopped ({type(exc).__name__}; exit code {code})")
                 return None
+            if answer is None:
+                return None
+            status, value = answer
             if status != "ok":
                 self._fail(f"it failed: {value}")
                 return None
             return value
+
+    def _answer(self, timeout: Optional[float]):
+        """The helper's next message, polled while it is alive; None (and failed) when it
+        stopped, or sent nothing within ``timeout`` seconds (None: no limit)."""
+        waited = 0.0
+        while not self._conn.poll(HELPER_POLL_S):
+            waited += HELPER_POLL_S
+            process = self._process
+            if process is None or not process.is_alive():
+                code = process.exitcode if process is not None else None
+                self._fail(f"it stopped (exit code {code})")
+                return None
+            if timeout is not None and waited >= timeout:
+                self._fail(f"it did not answer within {timeout:g} s")
+                return None
+        return self._conn.recv()
 
     def _fail(self, why: str) -> None:
         self.error = why
@@ -339,8 +369,9 @@ class PoissonHelper:
 
 
 def _helper_main(conn) -> None:
-    """The helper process: (points, normals, depth) in, ("ok", (vertices, faces)) or ("error",
-    message) out, until the pipe closes. Ctrl-C is the parent's to handle (it stops this)."""
+    """The helper process: ("ready", None) once open3d is imported, then (points, normals, depth)
+    in, ("ok", (vertices, faces)) or ("error", message) out, until the pipe closes. Ctrl-C is the
+    parent's to handle (it stops this)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -350,6 +381,10 @@ def _helper_main(conn) -> None:
         failure = f"{type(exc).__name__}: {exc}"
     else:
         failure = None
+    try:
+        conn.send(("ready", None))
+    except (OSError, BrokenPipeError):
+        return
     while True:
         try:
             points, normals, depth = conn.recv()
