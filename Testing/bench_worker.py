@@ -32,7 +32,8 @@ Task kinds (keys besides ``kind``):
 - ``cli``: ``argv``, ``log`` -> BoneWatertightLib.app.cli.main(argv), stdout/stderr to ``log``.
 
 Every kind runs with the command line's process settings (numpy's transparent-huge-page advice
-off, several-bone runs' Poisson in a helper process: BoneWatertightLib.app.run.configure_own_process).
+off, several-bone runs' Poisson in a helper process:
+BoneWatertightLib.app.run.configure_own_process).
 
 ``cprofile: true`` runs the call under cProfile and returns the top functions.
 
