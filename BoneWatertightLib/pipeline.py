@@ -546,14 +546,14 @@ def _reconstruct_many(run: _Run, t_all: float, ct, labels, targets, neighbours,
             and run.budget - top_two >= _poisson.HELPER_MEMORY_GB * 1024 ** 3):
         run.budget -= _poisson.HELPER_MEMORY_GB * 1024 ** 3
         run.poisson_helper = _poisson.PoissonHelper()
-    helper = run.poisson_helper
-    ws.prep.info["poisson_process"] = "helper" if helper is not None else "this"
     bones = run.each(ws.targets, run.stage("surfaces"),
                      lambda k, part: initial_surface_stage(run, ws, k, part))
+    helper = run.poisson_helper
+    ws.prep.info["poisson_process"] = \
+        "helper" if helper is not None and helper.error is None else "this"
     if helper is not None:
         helper.close()  # every M0 is made
         if helper.error is not None:
-            ws.prep.info["poisson_process"] = "this"
             run.fallbacks.add("poisson", f"the Poisson helper process failed ({helper.error}): "
                               "the Poisson surfaces were computed in this process instead")
     territory_stage(run, ws, bones)
