@@ -386,6 +386,70 @@ def test_plugs_grown_and_smoothed_on_their_box_equal_the_whole_grid(seed):
     assert np.array_equal(same, field)
 
 
+def _largest_genus(field):
+    from BoneWatertightLib.stages import poisson
+
+    return poisson.surface_genus(poisson.contour(field, (0.0, 0.0, 0.0), 1.0, 0.5, 0,
+                                                 relax=False))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_a_plug_told_apart_without_a_contour_never_hides_a_closed_tunnel(seed):
+    # _fill_tunnels decides on its box whether a plug can close a tunnel and makes the whole
+    # contour only then: on lace-like fields (dozens of tunnels) and random plugs, a plug it
+    # rejects must never lower the genus of the largest piece of the whole contour.
+    from BoneWatertightLib.stages import poisson
+
+    rng = np.random.default_rng(seed)
+    shape = (40, 44, 36)
+    noise = ndimage.gaussian_filter(rng.random(shape).astype(np.float32), 2.0)
+    field = np.clip((noise - noise.mean()) / (4 * noise.std()) + 0.5, 0, 1).astype(np.float32)
+    field[[0, -1]] = field[:, [0, -1]] = field[:, :, [0, -1]] = 0.0
+    before = _largest_genus(field)
+    assert before >= 3  # lace: plugs can close something
+    parts = ndimage.label(field >= 0.5)[0]
+    seen = {"skipped": 0, "lowered": 0}
+    for _ in range(60):
+        add = np.zeros(shape, bool)
+        c = [int(rng.integers(4, n - 4)) for n in shape]
+        r = int(rng.integers(1, 4))
+        add[c[0] - r:c[0] + r + 1, c[1] - r:c[1] + r + 1, c[2] - r:c[2] + r + 1] = True
+        trial = field.copy()
+        if rng.random() < 0.5:
+            poisson._raise_to_ramp(trial, add)
+        else:
+            trial[add] = 1.0
+        after = _largest_genus(trial)
+        if not poisson._may_lower_genus(field, trial, 0.5, parts):
+            seen["skipped"] += 1
+            assert after >= before
+        elif after < before:
+            seen["lowered"] += 1
+    assert seen["skipped"] >= 5 and seen["lowered"] >= 1, seen
+    # a trial that changes no sign changes nothing
+    assert not poisson._may_lower_genus(field, field.copy(), 0.5, parts)
+
+
+def test_a_plug_of_a_hole_in_a_plate_is_contoured_and_a_bump_is_not():
+    from BoneWatertightLib.stages import poisson
+
+    field = np.zeros((20, 30, 30), np.float32)
+    field[8:12, 3:27, 3:27] = 1.0
+    field[8:12, 12:17, 12:17] = 0.0  # a hole through the plate: genus 1
+    parts = ndimage.label(field >= 0.5)[0]
+    plug = field.copy()
+    plug[9:11, 12:17, 12:17] = 1.0
+    assert _largest_genus(field) == 1 and _largest_genus(plug) == 0
+    assert poisson._may_lower_genus(field, plug, 0.5, parts)
+    bump = field.copy()
+    bump[12:15, 5:9, 5:9] = 1.0
+    assert _largest_genus(bump) == 1
+    assert not poisson._may_lower_genus(field, bump, 0.5, parts)
+    island = field.copy()
+    island[14:17, 5:9, 5:9] = 1.0  # a piece of its own: left to the contour
+    assert poisson._may_lower_genus(field, island, 0.5, parts)
+
+
 def _torus_faces(n, m):
     """Faces (2 n m, 3) of an n x m torus grid (genus 1; vertex i * m + j)."""
     i, j = np.meshgrid(np.arange(n), np.arange(m), indexing="ij")

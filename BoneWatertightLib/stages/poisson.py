@@ -25,7 +25,7 @@ from ..errors import DependencyError, ReconstructionError
 from ..mesh.operators import tangential_relax
 from ..mesh.surface import Surface, enclosed_volume, from_polydata, inside_mask
 from .prepare import bbox_slices
-from .threshold import dilate_cube, fill_holes
+from .threshold import dilate6, dilate_cube, fill_holes
 
 # Sigma (voxels) of the smoothed mask whose gradient gives the oriented normals.
 NORMAL_MASK_SIGMA_VOXELS = 1.5
@@ -461,15 +461,20 @@ def surface_genus(surface: Surface) -> int:
     f = np.asarray(surface.faces, np.int64)
     if not len(f):
         return 0
+    return max(0, (2 - _euler_characteristic(f)) // 2)
+
+
+def _euler_characteristic(faces: np.ndarray) -> int:
+    """V - E + F of triangles ``faces`` (k, 3) int64 (k > 0): the vertices they use and their
+    distinct undirected edges."""
     # Distinct vertices and undirected edges counted on one sorted key array (the fill's and
     # the join's trials count a contour's tunnels dozens of times: np.unique took 10 x longer).
-    a, b = f.ravel(), f[:, [1, 2, 0]].ravel()
-    keys = np.minimum(a, b) * (int(f.max()) + 1) + np.maximum(a, b)
+    a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()
+    keys = np.minimum(a, b) * (int(faces.max()) + 1) + np.maximum(a, b)
     keys.sort()
     n_edges = int(np.count_nonzero(keys[1:] != keys[:-1])) + 1
     n_vertices = int(np.count_nonzero(np.bincount(a)))
-    chi = n_vertices - n_edges + len(f)
-    return max(0, (2 - chi) // 2)
+    return n_vertices - n_edges + len(faces)
 
 
 def _label_on(fusion: Fusion, shape: tuple, lo: np.ndarray, h: float,
@@ -926,6 +931,65 @@ def _raise_to_ramp(field_zyx: np.ndarray, add: np.ndarray) -> None:
     np.maximum(field_zyx[sl], np.minimum(1.0, 2.0 * ramp), out=field_zyx[sl])
 
 
+def _contour_euler(field_zyx: np.ndarray, level: float) -> int:
+    """Euler characteristic V - E + F of the isosurface of ``field_zyx`` (z, y, x) at
+    ``level`` as flying edges makes it (every piece, open where it meets the box's faces)."""
+    from .. import _vtk as vtk
+    from .._vtk import numpy_support as ns
+
+    img = vtk.vtkImageData()
+    img.SetDimensions(*[int(v) for v in field_zyx.shape[::-1]])
+    img.GetPointData().SetScalars(ns.numpy_to_vtk(
+        np.ascontiguousarray(field_zyx, dtype=np.float32).ravel(), deep=True))
+    fe = vtk.vtkFlyingEdges3D()
+    fe.SetInputData(img)
+    fe.SetValue(0, level)
+    fe.ComputeNormalsOff()
+    fe.ComputeGradientsOff()
+    fe.ComputeScalarsOff()
+    fe.Update()
+    polys = fe.GetOutput().GetPolys()
+    if polys.GetNumberOfCells() == 0:
+        return 0
+    return _euler_characteristic(
+        ns.vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64).reshape(-1, 3))
+
+
+def _may_lower_genus(before: np.ndarray, after: np.ndarray, level: float,
+                     parts: np.ndarray) -> bool:
+    """False when the largest piece of the contour of ``after`` at ``level`` certainly has no
+    fewer tunnels than that of ``before`` (the same grid, ``after >= before`` everywhere):
+    a plug whose contour :func:`_fill_tunnels` need not make. ``parts``: the pieces of
+    ``before``'s inside (``>= level``), 6-connected (``ndimage.label``).
+
+    Exact, not a guess: the contour's topology follows the signs of the values against
+    ``level`` only, cell by cell, so the cells with a voxel that crossed it (the box of those
+    voxels grown by one) hold the whole change, and the Euler characteristic is additive over
+    the two parts of the grid, which meet along the same curves before and after: the
+    change of chi = 2 (pieces) - 2 (tunnels) is that of the box's contours. Where the crossed
+    voxels meet at most one piece of ``before`` (a piece 6-connected is in one piece of the
+    contour), no pieces merge, so the tunnels of every piece together can drop only when chi
+    grows. Values exactly at ``level`` (where the contour's points coincide and are merged)
+    and boxes too thin to contour are left to the contour (True)."""
+    crossed = (after >= level) & (before < level)
+    if not crossed.any():
+        return False  # the same signs everywhere: the same topology
+    box = bbox_slices(crossed, 1)
+    sub_before, sub_after = before[box], after[box]
+    if min(sub_after.shape) < 2 or (sub_before == level).any() or (sub_after == level).any():
+        return True
+    sub_crossed, sub_parts = crossed[box], parts[box]
+    near = sub_parts[dilate_cube(sub_crossed, 1)]
+    if len(np.unique(near[near > 0])) != 1:
+        return True  # pieces may merge, or the plug is a piece of its own
+    # every 6-connected part of the crossed voxels 6-touches that piece: no new piece
+    groups, n_groups = ndimage.label(sub_crossed)
+    attached = np.unique(groups[dilate6(sub_parts > 0) & sub_crossed])
+    if np.count_nonzero(attached) < n_groups:
+        return True
+    return _contour_euler(sub_after, level) > _contour_euler(sub_before, level)
+
+
 def _grown_into(mask: np.ndarray, within: np.ndarray, steps: int, box=None) -> np.ndarray:
     """``mask`` dilated by ``steps`` steps of the 3 x 3 x 3 cube, within ``within``: computed
     on the mask's bounding box (``box``: its slices, when known) grown by ``steps`` - what a
@@ -978,7 +1042,8 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
     fusion.info.update(genus_before=int(genus), segment_genus=int(fusion.genus),
                        label_fill_voxels=0, label_fill_mm3=0.0, plugs=0, fill_trials=0,
                        bone_plugs=0, bone_fill_mm3=0.0, narrow_plugs=0, narrow_fill_mm3=0.0,
-                       thin_plate_plugs=0, covered_plate_plugs=0)
+                       thin_plate_plugs=0, covered_plate_plugs=0,
+                       fill_trials_local=0)
     if genus <= fusion.genus and (fusion.bone is None or genus == 0):
         fusion.info["genus_after"] = int(genus)
         return out
@@ -987,18 +1052,27 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
     filled = np.zeros(field_zyx.shape, bool)
     trials = 0
 
+    parts = None  # the pieces of the field's inside, for _may_lower_genus
+
     def attempt(add, soft):
-        nonlocal trials, genus, field_zyx
+        nonlocal trials, genus, field_zyx, parts
         trials += 1
         trial = field_zyx.copy()
         if soft:
             _raise_to_ramp(trial, add)
         else:
             trial[add] = 1.0
+        if parts is None:
+            parts = ndimage.label(field_zyx >= 0.5)[0]
+        # Most plugs tried close nothing (a real foramen stays open); they are told apart
+        # without a contour of the whole grid (the same decisions as with one).
+        if not _may_lower_genus(field_zyx, trial, 0.5, parts):
+            fusion.info["fill_trials_local"] += 1
+            return False
         # the genus of the raw contour: smoothing and relaxing do not change it
         g = surface_genus(contour(trial, lo, h, 0.5, 0, relax=False))
         if g < genus:
-            genus, field_zyx = g, trial
+            genus, field_zyx, parts = g, trial, None
             filled[add] = True
             return True
         return False
