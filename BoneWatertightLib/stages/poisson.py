@@ -634,13 +634,14 @@ def _contour_fused(occ: np.ndarray, lo, h: float, fusion: Optional[Fusion],
         np.maximum(field, fusion.plates(field.shape, lo, h), out=field)
     if fusion is not None and fusion.carve is not None and fusion.label is not None:
         field = _carve(field, lo, h, fusion)
-    out = (contour(field, lo, h, 0.5, smooth_iterations,
+    if field.max() <= 0.5:
+        return None
+    if fusion is not None and fusion.label is not None and fusion.genus is not None:
+        # the tunnels counted on the raw contour; the fill smooths only the one it keeps
+        return _fill_tunnels(contour(field, lo, h, 0.5, 0, relax=False), field, lo, h, fusion,
+                             smooth_iterations)
+    return contour(field, lo, h, 0.5, smooth_iterations,
                    info=None if fusion is None else fusion.info)
-           if field.max() > 0.5 else None)
-    if out is not None and fusion is not None and fusion.label is not None \
-            and fusion.genus is not None:
-        out = _fill_tunnels(out, field, lo, h, fusion, smooth_iterations)
-    return out
 
 
 def _largest_component(mask: np.ndarray) -> np.ndarray:
@@ -1006,9 +1007,11 @@ def _grown_into(mask: np.ndarray, within: np.ndarray, steps: int, box=None) -> n
     return out
 
 
-def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fusion,
+def _fill_tunnels(raw: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fusion,
                   smooth_iterations: int) -> Surface:
     """Where the contour has more tunnels than the segment, close them with the segment.
+    ``raw``: the unsmoothed contour of ``field_zyx`` (:func:`contour` without smoothing or
+    relaxing: the same tunnels); returned: the smoothed contour of the field filled.
 
     1. A label-restricted closing of the occupancy by ``fusion.close_mm[0]`` (small handles
        and gaps), kept if it lowers the genus.
@@ -1038,7 +1041,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
        (``covered_plate_plugs``): a hole neither the CT nor the segment has there.
     At most FILL_MAX_TRIALS contours per source; what was done is recorded in
     ``fusion.info`` (``narrow_plugs``, ``narrow_fill_mm3``, ``narrow_radius_mm``)."""
-    genus = surface_genus(out)
+    genus = surface_genus(raw)
     fusion.info.update(genus_before=int(genus), segment_genus=int(fusion.genus),
                        label_fill_voxels=0, label_fill_mm3=0.0, plugs=0, fill_trials=0,
                        bone_plugs=0, bone_fill_mm3=0.0, narrow_plugs=0, narrow_fill_mm3=0.0,
@@ -1046,7 +1049,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
                        fill_trials_local=0)
     if genus <= fusion.genus and (fusion.bone is None or genus == 0):
         fusion.info["genus_after"] = int(genus)
-        return out
+        return contour(field_zyx, lo, h, 0.5, smooth_iterations, info=fusion.info)
     lo = np.asarray(lo, np.float64)
     label = _label_on(fusion, field_zyx.shape, lo, h)
     filled = np.zeros(field_zyx.shape, bool)
@@ -1168,8 +1171,7 @@ def _fill_tunnels(out: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
                                                         trials + FILL_MAX_TRIALS, 0, thin=True)
         fusion.info["bone_plugs"] += fusion.info["covered_plate_plugs"]
         fusion.info["bone_fill_mm3"] += float((filled & ~before).sum() * h ** 3)
-    if filled.any():
-        out = contour(field_zyx, lo, h, 0.5, smooth_iterations, info=fusion.info)
+    out = contour(field_zyx, lo, h, 0.5, smooth_iterations, info=fusion.info)
     if from_label.any():
         fusion.info.update(label_fill_voxels=int(from_label.sum()),
                            label_fill_mm3=float(from_label.sum() * h ** 3))
