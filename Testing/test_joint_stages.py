@@ -1468,7 +1468,8 @@ def test_tunnels_narrower_than_the_ct_resolves_are_closed(hole, closed):
     label or bone plug reaches: closed when it is at most a CT voxel (coarseness 3 mm) and a
     grid step (1 mm) across, with what was done in the fusion's info and the fill mask
     (evidence 'label only'); a wider hole stays, and the genus says so."""
-    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, contour, surface_genus
+    from BoneWatertightLib.stages.poisson import (Fusion, _fill_tunnels, _Level, contour,
+                                                   surface_genus)
 
     occ = np.zeros((30, 34, 34), bool)
     occ[10:16, 5:29, 5:29] = True
@@ -1482,7 +1483,7 @@ def test_tunnels_narrower_than_the_ct_resolves_are_closed(hole, closed):
     # its coarseness, is 0
     fusion = Fusion(label=occ.copy(), label_origin=np.zeros(3), label_spacing=1.0, genus=0,
                     close_mm=(3.0,))
-    out = _fill_tunnels(m0, field, lo, 1.0, fusion, 0)
+    out = _fill_tunnels(_Level(field, lo, 1.0, m0), fusion).smoothed(0)
     info = fusion.info
     if closed:
         assert surface_genus(out) == 0 and info["genus_after"] == 0
@@ -1553,13 +1554,13 @@ def test_m0_tunnels_in_a_plate_a_voxel_thick_are_plugged_from_the_bone_last():
     its genus 0 at its own resolution) cannot plug, too wide for the narrow plugs: the last
     step plugs it from the bone's thin plates (``thin_plate_plugs``); a segment that has the
     tunnel keeps it."""
-    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, surface_genus
+    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, _Level, surface_genus
 
     bone, hole, occ, field, lo, m0 = _pierced_plate()
     for segment_genus in (0, 1):
         fusion = Fusion(label=occ & ~hole, label_origin=np.zeros(3), label_spacing=1.0,
                         genus=segment_genus, close_mm=(3.0,), bone=bone)
-        out = _fill_tunnels(m0, field.copy(), lo, 1.0, fusion, 0)
+        out = _fill_tunnels(_Level(field.copy(), lo, 1.0, m0), fusion).smoothed(0)
         info = fusion.info
         assert info["narrow_plugs"] == 0
         if segment_genus == 0:
@@ -1577,14 +1578,14 @@ def test_a_tunnel_the_segment_covers_is_plugged_whatever_its_genus(ct_shows):
     (``covered_plate_plugs``); a hole the CT shows dark stays, whatever the segment says
     (held-out hip bone, 0.7 x 2.5 mm: a 470-890 HU acetabular floor pierced twice, its
     lace-like label of genus 4)."""
-    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, surface_genus
+    from BoneWatertightLib.stages.poisson import Fusion, _fill_tunnels, _Level, surface_genus
 
     plate, hole, _, field, lo, m0 = _pierced_plate()
     bone = plate if ct_shows == "bone" else plate & ~hole
     strong = plate if ct_shows == "strong" else plate & ~hole
     fusion = Fusion(label=ndimage.binary_dilation(plate), label_origin=np.zeros(3),
                     label_spacing=1.0, genus=1, close_mm=(3.0,), bone=bone, strong=strong)
-    out = _fill_tunnels(m0, field.copy(), lo, 1.0, fusion, 0)
+    out = _fill_tunnels(_Level(field.copy(), lo, 1.0, m0), fusion).smoothed(0)
     info = fusion.info
     assert info["plugs"] == 0 and info["narrow_plugs"] == 0 and info["thin_plate_plugs"] == 0
     if ct_shows == "neither":

@@ -595,18 +595,16 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
         # The join is kept only when it adds no tunnel: the lace of a thin plate that the
         # thresholds hold and Poisson smoothed over is no process of the bone.
         before = dict(fusion.info)
-        plain = _contour_fused(occ, lo, h, fusion, smooth_iterations, smoothed)
+        plain = _contour_fused(occ, lo, h, fusion, smoothed)
         plain_state = (dict(fusion.info), fusion.fill_mask)
         fusion.info, fusion.fill_mask = before, None
-        out = _contour_fused(joined, lo, h, fusion, smooth_iterations)
-        if plain is not None and (out is None
-                                  or surface_genus(out) > surface_genus(plain)):
+        out = _contour_fused(joined, lo, h, fusion)
+        if plain is not None and (out is None or out.genus > plain.genus):
             # One piece's tunnel drops only that piece: a detached tip beside the lace of a
             # plate elsewhere is still joined.
-            out = _join_piece_by_piece(occ, joined, surface_genus(plain), lo, h, fusion,
-                                       smooth_iterations, before, smoothed)
-        if plain is not None and (out is None
-                                  or surface_genus(out) > surface_genus(plain)):
+            out = _join_piece_by_piece(occ, joined, plain.genus, lo, h, fusion, before,
+                                       smoothed)
+        if plain is not None and (out is None or out.genus > plain.genus):
             dropped = fusion.info.get("joined_bone_mm3", 0.0)
             reach = fusion.info.get("joined_reach_mm", 0.0)
             fusion.info, fusion.fill_mask = plain_state
@@ -615,17 +613,37 @@ def remesh(surface: Surface, edge_length: float, smooth_iterations: int = SINC_I
             fusion.dropped_far, fusion.joined_far = fusion.joined_far, None
             out = plain
     else:
-        out = _contour_fused(occ, lo, h, fusion, smooth_iterations, smoothed)
+        out = _contour_fused(occ, lo, h, fusion, smoothed)
+    # Only the contour kept is smoothed (the variants above are told apart by their tunnels).
+    out = None if out is None else out.smoothed(smooth_iterations,
+                                                None if fusion is None else fusion.info)
     if out is None or out.n_faces < MIN_REMESH_FACES:
         # A Poisson surface only a few grid steps across smooths away below the 0.5 level.
         raise _too_small(edge_length, out.n_faces if out else 0)
     return out
 
 
+class _Level:
+    """The 0.5 level of a field on the remeshing grid (z, y, x, step ``h``, voxel (0, 0, 0) at
+    ``lo``), contoured raw when its tunnels are asked for and smoothed only when kept."""
+
+    def __init__(self, field_zyx: np.ndarray, lo, h: float, raw: Optional[Surface] = None):
+        self.field, self.lo, self.h, self._raw = field_zyx, lo, h, raw
+
+    @property
+    def genus(self) -> int:
+        if self._raw is None:
+            self._raw = contour(self.field, self.lo, self.h, 0.5, 0, relax=False)
+        return surface_genus(self._raw)
+
+    def smoothed(self, iterations: int, info: Optional[dict] = None) -> Surface:
+        """The contour as :func:`remesh` returns it (``info``: see :func:`contour`)."""
+        return contour(self.field, self.lo, self.h, 0.5, iterations, info=info)
+
+
 def _contour_fused(occ: np.ndarray, lo, h: float, fusion: Optional[Fusion],
-                   smooth_iterations: int, smoothed: Optional[np.ndarray] = None
-                   ) -> Optional[Surface]:
-    """The 0.5 contour of the smoothed occupancy ``occ`` with the fusion's plates, carve and
+                   smoothed: Optional[np.ndarray] = None) -> Optional[_Level]:
+    """The 0.5 level of the smoothed occupancy ``occ`` with the fusion's plates, carve and
     tunnel fill (see :func:`remesh`); None when nothing reaches the level. ``smoothed``: occ
     already smoothed (REMESH_SMOOTH_SIGMA), when at hand; it is not modified."""
     field = (ndimage.gaussian_filter(occ.astype(np.float32), sigma=REMESH_SMOOTH_SIGMA)
@@ -637,11 +655,8 @@ def _contour_fused(occ: np.ndarray, lo, h: float, fusion: Optional[Fusion],
     if field.max() <= 0.5:
         return None
     if fusion is not None and fusion.label is not None and fusion.genus is not None:
-        # the tunnels counted on the raw contour; the fill smooths only the one it keeps
-        return _fill_tunnels(contour(field, lo, h, 0.5, 0, relax=False), field, lo, h, fusion,
-                             smooth_iterations)
-    return contour(field, lo, h, 0.5, smooth_iterations,
-                   info=None if fusion is None else fusion.info)
+        return _fill_tunnels(_Level(field, lo, h), fusion)
+    return _Level(field, lo, h)
 
 
 def _largest_component(mask: np.ndarray) -> np.ndarray:
@@ -664,8 +679,8 @@ JOIN_PIECES_TRIED = 6
 
 
 def _join_piece_by_piece(occ: np.ndarray, joined: np.ndarray, genus: int, lo, h: float,
-                         fusion: Fusion, smooth_iterations: int, before: dict,
-                         smoothed: np.ndarray) -> Optional[Surface]:
+                         fusion: Fusion, before: dict, smoothed: np.ndarray
+                         ) -> Optional[_Level]:
     """The contour of ``occ`` with those 26-connected pieces of ``joined & ~occ`` that reach
     farther than JOIN_TRIAL_REACH_MM beyond it and, added one at a time (largest first) to the
     pieces kept so far, leave at most ``genus`` tunnels; None when none does.
@@ -686,8 +701,8 @@ def _join_piece_by_piece(occ: np.ndarray, joined: np.ndarray, genus: int, lo, h:
         trial = kept.copy()
         trial[i] = True
         fusion.info, fusion.fill_mask = dict(before), None
-        surface = _contour_fused(occ | trial[pieces], lo, h, fusion, smooth_iterations)
-        if surface is not None and surface_genus(surface) <= genus:
+        surface = _contour_fused(occ | trial[pieces], lo, h, fusion)
+        if surface is not None and surface.genus <= genus:
             kept, out, state = trial, surface, (dict(fusion.info), fusion.fill_mask)
     if out is None:
         return None
@@ -1007,11 +1022,9 @@ def _grown_into(mask: np.ndarray, within: np.ndarray, steps: int, box=None) -> n
     return out
 
 
-def _fill_tunnels(raw: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fusion,
-                  smooth_iterations: int) -> Surface:
-    """Where the contour has more tunnels than the segment, close them with the segment.
-    ``raw``: the unsmoothed contour of ``field_zyx`` (:func:`contour` without smoothing or
-    relaxing: the same tunnels); returned: the smoothed contour of the field filled.
+def _fill_tunnels(level: _Level, fusion: Fusion) -> _Level:
+    """Where the contour of ``level`` has more tunnels than the segment, close them with the
+    segment; returned: the level of the field so filled (``level`` itself when nothing was).
 
     1. A label-restricted closing of the occupancy by ``fusion.close_mm[0]`` (small handles
        and gaps), kept if it lowers the genus.
@@ -1041,7 +1054,8 @@ def _fill_tunnels(raw: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
        (``covered_plate_plugs``): a hole neither the CT nor the segment has there.
     At most FILL_MAX_TRIALS contours per source; what was done is recorded in
     ``fusion.info`` (``narrow_plugs``, ``narrow_fill_mm3``, ``narrow_radius_mm``)."""
-    genus = surface_genus(raw)
+    field_zyx, lo, h = level.field, level.lo, level.h
+    genus = level.genus
     fusion.info.update(genus_before=int(genus), segment_genus=int(fusion.genus),
                        label_fill_voxels=0, label_fill_mm3=0.0, plugs=0, fill_trials=0,
                        bone_plugs=0, bone_fill_mm3=0.0, narrow_plugs=0, narrow_fill_mm3=0.0,
@@ -1049,7 +1063,7 @@ def _fill_tunnels(raw: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
                        fill_trials_local=0)
     if genus <= fusion.genus and (fusion.bone is None or genus == 0):
         fusion.info["genus_after"] = int(genus)
-        return contour(field_zyx, lo, h, 0.5, smooth_iterations, info=fusion.info)
+        return level
     lo = np.asarray(lo, np.float64)
     label = _label_on(fusion, field_zyx.shape, lo, h)
     filled = np.zeros(field_zyx.shape, bool)
@@ -1058,7 +1072,7 @@ def _fill_tunnels(raw: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
     parts = None  # the pieces of the field's inside, for _may_lower_genus
 
     def attempt(add, soft):
-        nonlocal trials, genus, field_zyx, parts
+        nonlocal trials, genus, field_zyx, parts, level
         trials += 1
         trial = field_zyx.copy()
         if soft:
@@ -1073,10 +1087,12 @@ def _fill_tunnels(raw: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
             fusion.info["fill_trials_local"] += 1
             return False
         # the genus of the raw contour: smoothing and relaxing do not change it
-        g = surface_genus(contour(trial, lo, h, 0.5, 0, relax=False))
+        raw = contour(trial, lo, h, 0.5, 0, relax=False)
+        g = surface_genus(raw)
         if g < genus:
             genus, field_zyx, parts = g, trial, None
             filled[add] = True
+            level = _Level(trial, lo, h, raw)
             return True
         return False
 
@@ -1171,7 +1187,6 @@ def _fill_tunnels(raw: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
                                                         trials + FILL_MAX_TRIALS, 0, thin=True)
         fusion.info["bone_plugs"] += fusion.info["covered_plate_plugs"]
         fusion.info["bone_fill_mm3"] += float((filled & ~before).sum() * h ** 3)
-    out = contour(field_zyx, lo, h, 0.5, smooth_iterations, info=fusion.info)
     if from_label.any():
         fusion.info.update(label_fill_voxels=int(from_label.sum()),
                            label_fill_mm3=float(from_label.sum() * h ** 3))
@@ -1181,7 +1196,7 @@ def _fill_tunnels(raw: Surface, field_zyx: np.ndarray, lo, h: float, fusion: Fus
         fusion.fill_mask = (from_label | narrow, lo, h)
     fusion.info["genus_after"] = int(genus)
     fusion.info["fill_trials"] = int(trials)
-    return out
+    return level
 
 
 def contour(field_zyx: np.ndarray, origin, h: float, level: float,
