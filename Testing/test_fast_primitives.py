@@ -430,6 +430,24 @@ def test_a_plug_told_apart_without_a_contour_never_hides_a_closed_tunnel(seed):
     assert not poisson._may_lower_genus(field, field.copy(), 0.5, parts)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_raw_genus_is_the_genus_of_the_unsmoothed_contour(seed):
+    # _fill_tunnels and remesh count tunnels with raw_genus (flying edges' largest piece, its
+    # points not merged) instead of the unsmoothed contour: the same counts, lace or solid.
+    from BoneWatertightLib.stages import poisson
+
+    rng = np.random.default_rng(seed)
+    noise = ndimage.gaussian_filter(rng.random((36, 40, 33)).astype(np.float32), 2.0)
+    counts = set()
+    for shift in (-0.1, 0.0, 0.1, 0.2):  # lace to solid
+        field = np.clip((noise - noise.mean()) / (4 * noise.std()) + 0.5 + shift, 0, 1)
+        field[[0, -1]] = field[:, [0, -1]] = field[:, :, [0, -1]] = 0.0
+        counts.add(poisson.raw_genus(field))
+        assert poisson.raw_genus(field) == _largest_genus(field)
+    assert len(counts) >= 3
+    assert poisson.raw_genus(np.zeros((5, 5, 5), np.float32)) == 0
+
+
 def test_a_plug_of_a_hole_in_a_plate_is_contoured_and_a_bump_is_not():
     from BoneWatertightLib.stages import poisson
 

@@ -1483,7 +1483,7 @@ def test_tunnels_narrower_than_the_ct_resolves_are_closed(hole, closed):
     # its coarseness, is 0
     fusion = Fusion(label=occ.copy(), label_origin=np.zeros(3), label_spacing=1.0, genus=0,
                     close_mm=(3.0,))
-    out = _fill_tunnels(_Level(field, lo, 1.0, m0), fusion).smoothed(0)
+    out = _fill_tunnels(_Level(field, lo, 1.0), fusion).smoothed(0)
     info = fusion.info
     if closed:
         assert surface_genus(out) == 0 and info["genus_after"] == 0
@@ -1560,7 +1560,7 @@ def test_m0_tunnels_in_a_plate_a_voxel_thick_are_plugged_from_the_bone_last():
     for segment_genus in (0, 1):
         fusion = Fusion(label=occ & ~hole, label_origin=np.zeros(3), label_spacing=1.0,
                         genus=segment_genus, close_mm=(3.0,), bone=bone)
-        out = _fill_tunnels(_Level(field.copy(), lo, 1.0, m0), fusion).smoothed(0)
+        out = _fill_tunnels(_Level(field.copy(), lo, 1.0), fusion).smoothed(0)
         info = fusion.info
         assert info["narrow_plugs"] == 0
         if segment_genus == 0:
@@ -1585,7 +1585,7 @@ def test_a_tunnel_the_segment_covers_is_plugged_whatever_its_genus(ct_shows):
     strong = plate if ct_shows == "strong" else plate & ~hole
     fusion = Fusion(label=ndimage.binary_dilation(plate), label_origin=np.zeros(3),
                     label_spacing=1.0, genus=1, close_mm=(3.0,), bone=bone, strong=strong)
-    out = _fill_tunnels(_Level(field.copy(), lo, 1.0, m0), fusion).smoothed(0)
+    out = _fill_tunnels(_Level(field.copy(), lo, 1.0), fusion).smoothed(0)
     info = fusion.info
     assert info["plugs"] == 0 and info["narrow_plugs"] == 0 and info["thin_plate_plugs"] == 0
     if ct_shows == "neither":

@@ -627,14 +627,15 @@ class _Level:
     """The 0.5 level of a field on the remeshing grid (z, y, x, step ``h``, voxel (0, 0, 0) at
     ``lo``), contoured raw when its tunnels are asked for and smoothed only when kept."""
 
-    def __init__(self, field_zyx: np.ndarray, lo, h: float, raw: Optional[Surface] = None):
-        self.field, self.lo, self.h, self._raw = field_zyx, lo, h, raw
+    def __init__(self, field_zyx: np.ndarray, lo, h: float, genus: Optional[int] = None):
+        self.field, self.lo, self.h, self._genus = field_zyx, lo, h, genus
 
     @property
     def genus(self) -> int:
-        if self._raw is None:
-            self._raw = contour(self.field, self.lo, self.h, 0.5, 0, relax=False)
-        return surface_genus(self._raw)
+        """:func:`raw_genus` of the field."""
+        if self._genus is None:
+            self._genus = raw_genus(self.field)
+        return self._genus
 
     def smoothed(self, iterations: int, info: Optional[dict] = None) -> Surface:
         """The contour as :func:`remesh` returns it (``info``: see :func:`contour`)."""
@@ -947,9 +948,8 @@ def _raise_to_ramp(field_zyx: np.ndarray, add: np.ndarray) -> None:
     np.maximum(field_zyx[sl], np.minimum(1.0, 2.0 * ramp), out=field_zyx[sl])
 
 
-def _contour_euler(field_zyx: np.ndarray, level: float) -> int:
-    """Euler characteristic V - E + F of the isosurface of ``field_zyx`` (z, y, x) at
-    ``level`` as flying edges makes it (every piece, open where it meets the box's faces)."""
+def _flying_edges(field_zyx: np.ndarray, level: float):
+    """vtkFlyingEdges3D of ``field_zyx`` (z, y, x) at ``level`` on a unit grid, not updated."""
     from .. import _vtk as vtk
     from .._vtk import numpy_support as ns
 
@@ -963,12 +963,45 @@ def _contour_euler(field_zyx: np.ndarray, level: float) -> int:
     fe.ComputeNormalsOff()
     fe.ComputeGradientsOff()
     fe.ComputeScalarsOff()
-    fe.Update()
-    polys = fe.GetOutput().GetPolys()
+    return fe
+
+
+def _polys_euler(poly) -> Optional[int]:
+    """V - E + F of a vtkPolyData's triangles (None when it has none)."""
+    from .._vtk import numpy_support as ns
+
+    polys = poly.GetPolys()
     if polys.GetNumberOfCells() == 0:
-        return 0
+        return None
     return _euler_characteristic(
         ns.vtk_to_numpy(polys.GetConnectivityArray()).astype(np.int64).reshape(-1, 3))
+
+
+def _contour_euler(field_zyx: np.ndarray, level: float) -> int:
+    """Euler characteristic of the isosurface of ``field_zyx`` (z, y, x) at ``level`` as
+    flying edges makes it: every piece, open where it meets the box's faces, one point per
+    edge that crosses the level (nothing merged)."""
+    fe = _flying_edges(field_zyx, level)
+    fe.Update()
+    chi = _polys_euler(fe.GetOutput())
+    return 0 if chi is None else chi
+
+
+def raw_genus(field_zyx: np.ndarray, level: float = 0.5) -> int:
+    """Tunnels of the largest piece of the isosurface of ``field_zyx`` at ``level``: that of
+    :func:`contour` without its smoothing, counted on flying edges' points as they are (one
+    per edge that crosses the level; :func:`contour` also merges points that coincide in
+    float32, which only a value within about 1e-4 of the level can make). Smoothing and
+    relaxing do not change it. 0 when nothing reaches the level."""
+    from .. import _vtk as vtk
+
+    fe = _flying_edges(field_zyx, level)  # (kept: an output port does not keep its filter)
+    conn = vtk.vtkPolyDataConnectivityFilter()
+    conn.SetInputConnection(fe.GetOutputPort())
+    conn.SetExtractionModeToLargestRegion()
+    conn.Update()
+    chi = _polys_euler(conn.GetOutput())
+    return 0 if chi is None else max(0, (2 - chi) // 2)
 
 
 def _may_lower_genus(before: np.ndarray, after: np.ndarray, level: float,
@@ -984,15 +1017,15 @@ def _may_lower_genus(before: np.ndarray, after: np.ndarray, level: float,
     the two parts of the grid, which meet along the same curves before and after: the
     change of chi = 2 (pieces) - 2 (tunnels) is that of the box's contours. Where the crossed
     voxels meet at most one piece of ``before`` (a piece 6-connected is in one piece of the
-    contour), no pieces merge, so the tunnels of every piece together can drop only when chi
-    grows. Values exactly at ``level`` (where the contour's points coincide and are merged)
-    and boxes too thin to contour are left to the contour (True)."""
+    contour) and each part of them meets it, no pieces merge and none is made, so the tunnels
+    can drop only when chi grows. Counted as :func:`raw_genus` counts (flying edges' points,
+    none merged). Boxes too thin to contour are left to the contour (True)."""
     crossed = (after >= level) & (before < level)
     if not crossed.any():
         return False  # the same signs everywhere: the same topology
     box = bbox_slices(crossed, 1)
     sub_before, sub_after = before[box], after[box]
-    if min(sub_after.shape) < 2 or (sub_before == level).any() or (sub_after == level).any():
+    if min(sub_after.shape) < 2:
         return True
     sub_crossed, sub_parts = crossed[box], parts[box]
     near = sub_parts[dilate_cube(sub_crossed, 1)]
@@ -1086,13 +1119,11 @@ def _fill_tunnels(level: _Level, fusion: Fusion) -> _Level:
         if not _may_lower_genus(field_zyx, trial, 0.5, parts):
             fusion.info["fill_trials_local"] += 1
             return False
-        # the genus of the raw contour: smoothing and relaxing do not change it
-        raw = contour(trial, lo, h, 0.5, 0, relax=False)
-        g = surface_genus(raw)
+        g = raw_genus(trial)
         if g < genus:
             genus, field_zyx, parts = g, trial, None
             filled[add] = True
-            level = _Level(trial, lo, h, raw)
+            level = _Level(trial, lo, h, g)
             return True
         return False
 
