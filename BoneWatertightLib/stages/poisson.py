@@ -948,12 +948,15 @@ def _raise_to_ramp(field_zyx: np.ndarray, add: np.ndarray) -> None:
     np.maximum(field_zyx[sl], np.minimum(1.0, 2.0 * ramp), out=field_zyx[sl])
 
 
-def _flying_edges(field_zyx: np.ndarray, level: float):
-    """vtkFlyingEdges3D of ``field_zyx`` (z, y, x) at ``level`` on a unit grid, not updated."""
+def _flying_edges(field_zyx: np.ndarray, level: float, origin=(0.0, 0.0, 0.0), h: float = 1.0):
+    """vtkFlyingEdges3D of ``field_zyx`` (z, y, x) at ``level`` (not updated), on a grid of step
+    ``h`` whose voxel (0, 0, 0) is at ``origin`` (x, y, z)."""
     from .. import _vtk as vtk
     from .._vtk import numpy_support as ns
 
     img = vtk.vtkImageData()
+    img.SetOrigin(*[float(v) for v in origin])
+    img.SetSpacing(h, h, h)
     img.SetDimensions(*[int(v) for v in field_zyx.shape[::-1]])
     img.GetPointData().SetScalars(ns.numpy_to_vtk(
         np.ascontiguousarray(field_zyx, dtype=np.float32).ravel(), deep=True))
@@ -1253,20 +1256,8 @@ def contour(field_zyx: np.ndarray, origin, h: float, level: float,
         ``smoothing_dropped`` (True when the unsmoothed contour itself was kept).
     """
     from .. import _vtk as vtk
-    from .._vtk import numpy_support as ns
 
-    dims = field_zyx.shape[::-1]
-    img = vtk.vtkImageData()
-    img.SetOrigin(*[float(v) for v in origin])
-    img.SetSpacing(h, h, h)
-    img.SetDimensions(*[int(v) for v in dims])
-    img.GetPointData().SetScalars(ns.numpy_to_vtk(np.ascontiguousarray(field_zyx, dtype=np.float32).ravel(), deep=True))
-    fe = vtk.vtkFlyingEdges3D()
-    fe.SetInputData(img)
-    fe.SetValue(0, level)
-    fe.ComputeNormalsOff()
-    fe.ComputeGradientsOff()
-    fe.ComputeScalarsOff()
+    fe = _flying_edges(field_zyx, level, origin, h)
     conn = vtk.vtkPolyDataConnectivityFilter()
     conn.SetInputConnection(fe.GetOutputPort())
     conn.SetExtractionModeToLargestRegion()
