@@ -582,11 +582,10 @@ def segment_genus(label: np.ndarray, spacing: float, coarseness: float = 0.0) ->
     ``coarseness`` (mm): a segment stair-stepped on its own coarse grid (an AI label resampled
     onto the CT) has tunnels of a voxel where its voxels touch at an edge, and holes smaller
     than its own resolution, which say nothing of the bone's tunnels."""
-    from .poisson import contour, surface_genus
+    from .poisson import raw_genus
 
-    field = np.pad(smoothed_segment(label, spacing, coarseness), 1).astype(np.float32)
-    return surface_genus(contour(field, (0.0, 0.0, 0.0), spacing, 0.5, smooth_iterations=0,
-                                 relax=False))
+    # (a 0 / 1 field: every point of the contour mid-edge, none to merge)
+    return raw_genus(np.pad(smoothed_segment(label, spacing, coarseness), 1).astype(np.float32))
 
 
 def smoothed_segment(label: np.ndarray, spacing: float, coarseness: float) -> np.ndarray:
