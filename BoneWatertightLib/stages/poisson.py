@@ -44,7 +44,8 @@ SINC_ITERATIONS = 15
 SMOOTHING_BACKOFF_HALVINGS = 3
 SINC_PASS_BAND = 0.1
 # Filling tunnels the segment does not have (see _fill_tunnels): at most FILL_MAX_TRIALS
-# contours per surface; plugs of at least FILL_MIN_VOXELS grid voxels.
+# plugs tried per source (each a trial, whether its box or a contour decided it); plugs of at
+# least FILL_MIN_VOXELS grid voxels.
 FILL_MAX_TRIALS = 8
 FILL_MIN_VOXELS = 8
 # A plug is grown this many grid steps into its source before it is tried (to meet the
@@ -58,7 +59,7 @@ SHEET_DEPTH_STEPS = 1.5
 # -PLUG_MIN_CURVATURE / sigma^2 (a plate one voxel thick: about -0.4 / sigma^3).
 PLUG_SHEETNESS = 2.0
 PLUG_MIN_CURVATURE = 0.05
-# ... and at most NARROW_MAX_TRIALS contours for the tunnels narrower than the CT resolves.
+# ... and at most NARROW_MAX_TRIALS trials for the tunnels narrower than the CT resolves.
 NARROW_MAX_TRIALS = 16
 # Fewest triangles of a remeshed M0 (a tetrahedron); fewer: the surface was lost.
 MIN_REMESH_FACES = 4
@@ -671,8 +672,8 @@ def _largest_component(mask: np.ndarray) -> np.ndarray:
 
 
 # The pieces of a join that adds a tunnel reaching farther than JOIN_TRIAL_REACH_MM beyond M0
-# are tried one by one (largest first, at most JOIN_PIECES_TRIED: each costs a contour of the
-# remesh grid, 1-2 s on a 0.7 x 2.5 mm hip bone); nearer ones are left out with the rest, as
+# are tried one by one (largest first, at most JOIN_PIECES_TRIED: each costs a tunnel count
+# and fill of the remesh grid); nearer ones are left out with the rest, as
 # their loss is within the thin-plate bones' bound on the largest error (issue 18: 5 mm; the
 # pipeline warns about left-out bone beyond it).
 JOIN_TRIAL_REACH_MM = 5.0
@@ -1081,15 +1082,17 @@ def _fill_tunnels(level: _Level, fusion: Fusion) -> _Level:
        (:func:`_narrow_tunnel_plugs`), smallest first, kept when they lower the genus: a
        tunnel narrower than the CT resolves, where the segment at its own resolution has bone
        (thin necks of a vertebra's arch on 3 mm slices, pierced where they are a voxel thin).
-       At most NARROW_MAX_TRIALS contours.
+       At most NARROW_MAX_TRIALS trials.
     5. While tunnels the segment does not have remain: plugs from ``fusion.bone`` again, now also
        of its plates thinner than the normals' smoothing (:func:`_plugs`' ``ridges``), all of
        them however small in the first trial (``thin_plate_plugs``).
     6. Whatever the segment's genus, while tunnels remain: the same plugs from the bone (and
        the CT in the initial window, ``fusion.strong``) that the segment also covers
        (``covered_plate_plugs``): a hole neither the CT nor the segment has there.
-    At most FILL_MAX_TRIALS contours per source; what was done is recorded in
-    ``fusion.info`` (``narrow_plugs``, ``narrow_fill_mm3``, ``narrow_radius_mm``)."""
+    At most FILL_MAX_TRIALS trials per source; a plug whose box shows it cannot close a
+    tunnel (:func:`_may_lower_genus`) is decided without a contour of the whole grid (counted
+    in ``fill_trials_local``). What was done is recorded in ``fusion.info`` (``narrow_plugs``,
+    ``narrow_fill_mm3``, ``narrow_radius_mm``)."""
     field_zyx, lo, h = level.field, level.lo, level.h
     genus = level.genus
     fusion.info.update(genus_before=int(genus), segment_genus=int(fusion.genus),
