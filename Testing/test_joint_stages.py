@@ -525,6 +525,28 @@ def test_enclosed_pieces_join_the_bone_whose_merged_pieces_surround_them():
                                       reach_mm=8.0, boxes=boxes) == []
 
 
+def test_a_crumb_whose_corner_meets_the_bone_in_a_valley_still_joins_it():
+    """A tip of a process on thick slices breaks into crumbs of H0: the tip's crumb lies
+    between crumbs merged into the bone and meets the bone itself over one voxel face in a
+    valley (a dip of the blurred process). So small a contact shows no joint space: the crumb
+    joins the bone. A direct contact as large as one the first merge counts, with a valley
+    on most of it, still keeps it out (a joint space to the bone itself)."""
+    shape = (6, 6, 30)
+    labels = np.zeros(shape, np.uint16)
+    labels[:, :, :10] = 1
+    ws = np.zeros(shape, np.int32)
+    ws[:, :, 10:14] = 3                      # merged into bone 1
+    ws[:, :, 14:18] = 4                      # the tip's crumb
+    boxes = ndimage.find_objects(ws)
+    merged = [(3, 1, 0.0, 36.0)]
+    kw = dict(reach_mm=10.0, boxes=boxes)
+    corner = {(1, 3): (36, 0), (3, 4): (36, 1), (1, 4): (1, 1)}
+    out = ownership._enclosed_pieces(corner, merged, [3, 4], 1, ws, labels, 1.0, **kw)
+    assert [(p, a) for p, a, _, _ in out] == [(4, 1)]
+    across = {(1, 3): (36, 0), (3, 4): (36, 1), (1, 4): (4, 3)}   # 4 mm^2, 3 in a valley
+    assert ownership._enclosed_pieces(across, merged, [3, 4], 1, ws, labels, 1.0, **kw) == []
+
+
 def test_a_thin_plate_between_the_labelled_parts_joins_the_bone_beyond_the_reach():
     """A segment that misses the middle of a plate between its labelled parts (an AI label
     of an iliac wing on thick slices): the unlabelled plate, beyond the merge's reach but thin

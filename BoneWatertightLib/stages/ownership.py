@@ -1354,11 +1354,11 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
     The candidates are grouped into clusters (touching each other); a cluster joins bone a when
     every contact it has outside itself is with a or with pieces merged into a, a valley shows
     on less than OWN_MAX_VALLEY_FRACTION of those contacts (and on less than
-    MERGE_MAX_VALLEY_FRACTION of its direct contact with a), and each of its pieces lies within
-    ``reach_mm`` of a's label - or is a thin plate within the label's span
-    (:func:`_plate_in_span`, thinner than ``plate_depth_mm`` deep: a plate the CT barely
-    resolves, which a coarse or AI segment leaves out between its labelled parts; left out, it
-    became a hole in the surface that the segment does not have). A cluster that fails is no
+    MERGE_MAX_VALLEY_FRACTION of each direct contact with a of at least MERGE_MIN_AREA_MM2),
+    and each of its pieces lies within ``reach_mm`` of a's label - or is a thin plate within
+    the label's span (:func:`_plate_in_span`, thinner than ``plate_depth_mm`` deep: a plate
+    the CT barely resolves, which a coarse or AI segment leaves out between its labelled parts;
+    left out, it became a hole in the surface that the segment does not have). A cluster that fails is no
     candidate any more, so the clusters touching it fail in turn: nothing joins that is
     connected to unlabelled bone left out (a neighbour the segment does not label).
     [(piece, bone, valley fraction, contact mm^2)] as :func:`_merged_pieces`; the pieces that
@@ -1392,10 +1392,13 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
             bones = {into.get(q, q) for q, _, _ in outside}
             tot = sum(t for _, t, _ in outside)
             vis = sum(v for _, _, v in outside)
+            # A direct contact with the bone shows a joint space only where it is as large as
+            # a contact the first merge counts (a face or two in a valley is a crumb's corner).
             ok = (len(bones) == 1 and min(bones) <= n and tot > 0
                   and all(q <= n or q in into for q, _, _ in outside)
                   and vis / tot < OWN_MAX_VALLEY_FRACTION
-                  and all(v < MERGE_MAX_VALLEY_FRACTION * t for q, t, v in outside if q <= n))
+                  and all(v < MERGE_MAX_VALLEY_FRACTION * t for q, t, v in outside
+                          if q <= n and t * area >= MERGE_MIN_AREA_MM2))
             if ok:
                 (bone,) = bones
                 for p in sorted(cluster):
