@@ -1414,6 +1414,28 @@ def test_joint_surface_fit_picks_the_simpler_model_and_refuses_noise():
     assert jointfit.fit_joint_surface(pts[:20], 0.6) is None
 
 
+def test_the_support_of_a_fit_on_voxel_centres_is_its_hull_edges_included():
+    """The seen joint space is voxel centres: the hull's edges run through lattice points,
+    which are supported (as a triangulation's point location counts them), and so is every
+    lattice point inside; those outside are not (compared with scipy's Delaunay on the same
+    projected points, points on and off the hull, an oblique plane)."""
+    from scipy.spatial import Delaunay
+    rng = np.random.default_rng(4)
+    ij = np.argwhere(np.ones((25, 25), bool)).astype(float)
+    ij = ij[np.hypot(ij[:, 0] - 12, ij[:, 1] - 12) <= 11.5]       # a disc of voxels
+    rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    pts = (np.column_stack([ij * 0.75, np.zeros(len(ij))]) @ rot.T) + [3.0, -7.0, 20.0]
+    s = jointfit.fit_joint_surface(pts, 0.75)
+    assert s is not None and s.kind == "plane" and s.build_support()
+    grid = np.argwhere(np.ones((31, 31), bool)).astype(float) - 3.0
+    query = (np.column_stack([grid * 0.75, np.zeros(len(grid))]) @ rot.T) + [3.0, -7.0, 20.0]
+    q, _ = s.project(query)
+    expected = Delaunay(s.hull.points).find_simplex(q) >= 0
+    got = s.supported(query)
+    assert np.array_equal(got, expected)
+    assert 0 < expected.sum() < len(query)
+    # the hull's own corners are inside
+    assert s.supported(pts).all()
 
 def test_a_joint_fit_may_leave_the_scatter_of_the_cts_own_resolution():
     """On a coarse CT the seen joint space is located no better than the CT resolves it: a
