@@ -751,7 +751,8 @@ def threshold_windows(run: _Run, ws: Workspace, bone: BoneWork) -> None:
         bone.masks = bone_masks(ws.ct_f, own.owner, own.cores, ws.labels, bone.k, d, h0=ws.h0,
                                 theta_max=params.theta_max, coarseness=ws.prep.coarseness,
                                 opening=params.opening, closing=params.closing,
-                                unsupported=own.unsupported, fallbacks=bone.fallbacks)
+                                unsupported=own.unsupported, fallbacks=bone.fallbacks,
+                                foreground=own.foreground)
         step_voxels = max(1, int(round(min(ws.prep.ct_spacing) / d)))
         bone.separation = erosions_to_separate(ws.ct_f, own.owner, bone.k, d, h0=ws.h0,
                                                theta_max=params.theta_max,

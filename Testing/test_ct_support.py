@@ -97,3 +97,40 @@ def test_segment_without_bone_is_refused(background):
         reconstruct(_image(arr), _image(mask))
     text = str(err.value)
     assert "covers" in text and "bone" in text
+
+
+def test_low_density_bone_between_the_core_and_a_neighbours_band_is_the_bones():
+    """A joint whose two cortices blur into one bright band on thick slices (a sacrum at the
+    sacro-iliac joint): the neighbour owns the band, and bone k's label between its core and
+    the band holds low-HU trabecular bone outside every bone's evidence. It lies between bone
+    on both sides, so it is k's (before, k's surface stopped at its core, a dent as deep as the
+    core's margin). Where the band is bone evidence nobody owns (a joint space the CT shows),
+    or without the evidence given, nothing is filled."""
+    from BoneWatertightLib.stages.threshold import bone_masks
+
+    shape = (24, 24, 40)
+    labels = np.zeros(shape, np.uint16)
+    labels[4:20, 4:20, 4:22] = 1            # bone k = 1, its label up to x = 21
+    labels[4:20, 4:20, 22:34] = 2           # the neighbour
+    owner = np.zeros(shape, np.uint16)
+    cores = np.zeros(shape, np.uint16)
+    cores[6:18, 6:18, 6:15] = 1             # k's core stops 7 voxels short of its label's end
+    owner[cores == 1] = 1
+    owner[4:20, 4:20, 20:34] = 2            # the blurred band (and the neighbour) owned by 2
+    ct = np.full(shape, 60.0, np.float32)   # trabecular bone at soft-tissue HU
+    ct[owner == 2] = 700.0
+    fg = owner > 0
+    kw = dict(h0=400.0, theta_max=3000.0, coarseness=3.0, opening=0, closing=0)
+    mid = (12, 12, 17)                      # between k's core and the band, in k's label
+
+    def at(masks, index):
+        i = tuple(np.asarray(index) - [s.start for s in masks.box])
+        return bool(masks.w_ht[i])
+
+    filled = bone_masks(ct, owner, cores, labels, 1, 1.0, foreground=fg, **kw)
+    assert at(filled, mid) and at(filled, (12, 12, 19))
+    assert not at(filled, (12, 12, 20))     # the neighbour's band stays the neighbour's
+    assert not at(bone_masks(ct, owner, cores, labels, 1, 1.0, **kw), mid)
+    seen = fg.copy()
+    seen[4:20, 4:20, 15:20] = True          # the gap is bone evidence nobody owns
+    assert not at(bone_masks(ct, owner, cores, labels, 1, 1.0, foreground=seen, **kw), mid)

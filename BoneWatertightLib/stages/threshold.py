@@ -103,7 +103,7 @@ def segment_region(segment: np.ndarray, spacing: float, close_mm: float = REGION
 def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.ndarray,
                k: int, spacing: float, *, h0: float, theta_max: float, coarseness: float,
                opening: int, closing: int, unsupported: np.ndarray = None,
-               fallbacks=None) -> BoneMasks:
+               fallbacks=None, foreground: np.ndarray = None) -> BoneMasks:
     """W_H0, W_HT and their solid versions for bone k (label index ``k``).
 
     Parameters
@@ -126,6 +126,9 @@ def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.
     unsupported : (z, y, x) bool array, optional
         Parts of the labels that the CT shows to be soft tissue (:func:`.ownership.unsupported_parts`):
         the label-restricted closing does not fill them.
+    foreground : (z, y, x) bool array, optional
+        The bone evidence F of :func:`.ownership.compute_ownership`: with it, the closing also
+        fills the label's voxels between bone k and its neighbours' bone outside F.
     fallbacks : BoneWatertightLib.report.FallbackLog, optional
         Notes an opening skipped because it would empty a window.
     """
@@ -138,8 +141,20 @@ def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.
     ctb = ct[box]
     strong = (ctb >= h0) & (ctb <= theta_max)
     r = max(1, int(round(coarseness / spacing)))
-    closed = erode6(dilate6(np.pad(owned | core, r + 1), r), r)[
-        r + 1:-r - 1, r + 1:-r - 1, r + 1:-r - 1]
+
+    def close(mask):
+        pad = r + 1
+        return erode6(dilate6(np.pad(mask, pad), r), r)[pad:-pad, pad:-pad, pad:-pad]
+
+    closed = close(owned | core)
+    others = (owner[box] > 0) & (owner[box] != k)
+    if foreground is not None and others.any():
+        # Against the neighbours' bone too: where a joint's two cortices blur into one band
+        # (no joint space seen) that the neighbour owns, the label's low-HU bone between its
+        # core and that band lies between bone on both sides, not outside the bone (a sacrum
+        # at the sacro-iliac joint on 2.5 mm slices) - but never bone evidence that nobody
+        # owns (a joint space the CT shows is such evidence, kept out of every bone).
+        closed |= close(owned | core | others) & ~foreground[box]
     trusted = lab_k if unsupported is None else lab_k & ~unsupported[box]
     owned = owned | (closed & trusted & (owner[box] == 0))
     w_h0, w_ht = _open_close_both(((owned & strong) | core, "W_H0"), (owned | core, "W_HT"),
