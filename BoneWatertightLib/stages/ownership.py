@@ -1358,9 +1358,9 @@ def _enclosed_pieces(faces: dict, merged: list, pieces, n: int, ws, labels, spac
     and each of its pieces lies within ``reach_mm`` of a's label - or is a thin plate within
     the label's span (:func:`_plate_in_span`, thinner than ``plate_depth_mm`` deep: a plate
     the CT barely resolves, which a coarse or AI segment leaves out between its labelled parts;
-    left out, it became a hole in the surface that the segment does not have). A cluster that fails is no
-    candidate any more, so the clusters touching it fail in turn: nothing joins that is
-    connected to unlabelled bone left out (a neighbour the segment does not label).
+    left out, it became a hole in the surface that the segment does not have). A cluster that
+    fails is no candidate any more, so the clusters touching it fail in turn: nothing joins
+    that is connected to unlabelled bone left out (a neighbour the segment does not label).
     [(piece, bone, valley fraction, contact mm^2)] as :func:`_merged_pieces`; the pieces that
     joined as such a plate (beyond the reach) are added to ``plates``."""
     area = spacing ** 2
