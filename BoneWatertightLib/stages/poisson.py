@@ -970,6 +970,17 @@ def _flying_edges(field_zyx: np.ndarray, level: float, origin=(0.0, 0.0, 0.0), h
     return fe
 
 
+def _largest_piece(source):
+    """A vtkPolyDataConnectivityFilter keeping the largest region of ``source``'s output
+    (not updated)."""
+    from .. import _vtk as vtk
+
+    conn = vtk.vtkPolyDataConnectivityFilter()
+    conn.SetInputConnection(source.GetOutputPort())
+    conn.SetExtractionModeToLargestRegion()
+    return conn
+
+
 def _polys_euler(poly) -> Optional[int]:
     """V - E + F of a vtkPolyData's triangles (None when it has none)."""
     from .._vtk import numpy_support as ns
@@ -997,12 +1008,8 @@ def raw_genus(field_zyx: np.ndarray, level: float = 0.5) -> int:
     per edge that crosses the level; :func:`contour` also merges points that coincide in
     float32, which only a value within about 1e-4 of the level can make). Smoothing and
     relaxing do not change it. 0 when nothing reaches the level."""
-    from .. import _vtk as vtk
-
     fe = _flying_edges(field_zyx, level)  # (kept: an output port does not keep its filter)
-    conn = vtk.vtkPolyDataConnectivityFilter()
-    conn.SetInputConnection(fe.GetOutputPort())
-    conn.SetExtractionModeToLargestRegion()
+    conn = _largest_piece(fe)
     conn.Update()
     chi = _polys_euler(conn.GetOutput())
     return 0 if chi is None else max(0, (2 - chi) // 2)
@@ -1111,7 +1118,7 @@ def _fill_tunnels(level: _Level, fusion: Fusion) -> _Level:
     parts = None  # the pieces of the field's inside, for _may_lower_genus
 
     def attempt(add, soft):
-        nonlocal trials, genus, field_zyx, parts, level
+        nonlocal trials, genus, field_zyx, parts
         trials += 1
         trial = field_zyx.copy()
         if soft:
@@ -1129,7 +1136,6 @@ def _fill_tunnels(level: _Level, fusion: Fusion) -> _Level:
         if g < genus:
             genus, field_zyx, parts = g, trial, None
             filled[add] = True
-            level = _Level(trial, lo, h, g)
             return True
         return False
 
@@ -1233,7 +1239,7 @@ def _fill_tunnels(level: _Level, fusion: Fusion) -> _Level:
         fusion.fill_mask = (from_label | narrow, lo, h)
     fusion.info["genus_after"] = int(genus)
     fusion.info["fill_trials"] = int(trials)
-    return level
+    return _Level(field_zyx, lo, h, genus) if filled.any() else level
 
 
 def contour(field_zyx: np.ndarray, origin, h: float, level: float,
@@ -1260,10 +1266,8 @@ def contour(field_zyx: np.ndarray, origin, h: float, level: float,
     """
     from .. import _vtk as vtk
 
-    fe = _flying_edges(field_zyx, level, origin, h)
-    conn = vtk.vtkPolyDataConnectivityFilter()
-    conn.SetInputConnection(fe.GetOutputPort())
-    conn.SetExtractionModeToLargestRegion()
+    fe = _flying_edges(field_zyx, level, origin, h)  # (kept: a port does not keep its filter)
+    conn = _largest_piece(fe)
     clean = vtk.vtkCleanPolyData()
     clean.SetInputConnection(conn.GetOutputPort())
     clean.PointMergingOn()

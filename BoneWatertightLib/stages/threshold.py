@@ -147,8 +147,8 @@ def bone_masks(ct: np.ndarray, owner: np.ndarray, cores: np.ndarray, labels: np.
         return erode6(dilate6(np.pad(mask, pad), r), r)[pad:-pad, pad:-pad, pad:-pad]
 
     closed = close(owned | core)
-    others = (owner[box] > 0) & (owner[box] != k)
-    if foreground is not None and others.any():
+    others = None if foreground is None else (owner[box] > 0) & (owner[box] != k)
+    if others is not None and others.any():
         # Against the neighbours' bone too: where a joint's two cortices blur into one band
         # (no joint space seen) that the neighbour owns, the label's low-HU bone between its
         # core and that band lies between bone on both sides, not outside the bone (a sacrum
