@@ -1443,7 +1443,10 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
     else:
         plaus.segment_genus = _plaus.segment_genus(
             segment & _plaus.image_mask(box, planes, ws.d), ws.d, ws.prep.coarseness)
-    warnings += _plaus.tunnel_warning(name, checks.genus, plaus.segment_genus)
+    plugged = None
+    if checks.genus > plaus.segment_genus:
+        plugged = _plugged_tunnels(ws, bone.k, verts, faces, planes)
+    warnings += _plaus.tunnel_warning(name, checks.genus, plaus.segment_genus, plugged)
     plaus.plate_holes = bone.plate_holes
     warnings += _left_out_warning(name, bone.fusion, grid, bone.masks.origin, phys, faces,
                                   planes)
@@ -1594,6 +1597,23 @@ def plausibility_of(run: _Run, ws: Workspace, bone: BoneWork, verts, faces, phys
                            else None),
                 where_text=lambda at: _lps_text(ws.prep.grid, np.asarray(at) + corner))
     return plaus, box, seg_all[box]
+
+
+def _plugged_tunnels(ws: Workspace, k: int, verts, faces, planes) -> int:
+    """plausibility.plugged_tunnels of bone k's surface (``verts`` grid mm) and its segment on
+    a box of the working grid holding both (and the reach of the segment's plugs)."""
+    d, lab = ws.d, ws.labels
+    pad = int(np.ceil(_plaus.PLUG_REACH_COARSENESS * ws.prep.coarseness / d)) + 2
+    seg = lab == k
+    around = np.zeros(lab.shape, bool)
+    lo = np.clip(np.floor(verts.min(axis=0) / d).astype(int), 0, np.array(lab.shape[::-1]) - 1)
+    hi = np.clip(np.ceil(verts.max(axis=0) / d).astype(int), 0, np.array(lab.shape[::-1]) - 1)
+    around[lo[2]:hi[2] + 1, lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] = True
+    box = _threshold.bbox_slices(seg | around, pad)
+    corner = np.array([s.start for s in box][::-1], dtype=np.float64) * d
+    inside = _contacts.voxelize(verts - corner, faces, tuple(s.stop - s.start for s in box), d)
+    segment = seg[box] & _plaus.image_mask(box, planes, d)
+    return _plaus.plugged_tunnels(inside, segment, d, ws.prep.coarseness)
 
 
 def _relabelled_warnings(ws: Workspace, k: int) -> list:

@@ -1019,6 +1019,25 @@ def test_segment_genus_and_the_tunnel_warning():
     assert "1 tunnel more than its segment (genus 2 against 1)" in text
 
 
+def test_a_tunnel_the_segment_plugs_is_a_hole_and_a_ring_it_leaves_open_is_not():
+    # A 3 mm-thick plate with a hole 6 mm across (the surface), the plate whole (its segment):
+    # the segment plugs the hole. A ring (the surface: a vertebral arch closed) whose segment
+    # leaves a 6 mm gap in it: the extra tunnel goes through bone the segment leaves out.
+    z, y, x = np.indices((24, 60, 60))
+    plate = (abs(z - 12.0) <= 1.5) & (abs(x - 30.0) <= 20) & (abs(y - 30.0) <= 20)
+    holed = plate & (np.hypot(x - 30.0, y - 30.0) > 3.0)
+    assert plausibility.plugged_tunnels(holed, plate, 1.0, 3.0) == 1
+    (text,) = plausibility.tunnel_warning("hip", 1, 0, 1)
+    assert "may have come out as a hole" in text
+    ring = np.hypot(np.hypot(x - 30.0, y - 30.0) - 15.0, z - 12.0) <= 4.0
+    open_ring = ring & ~((abs(x - 30.0) <= 3.0) & (y > 30))
+    assert plausibility.segment_genus(open_ring, 1.0, 3.0) == 0
+    assert plausibility.plugged_tunnels(ring, open_ring, 1.0, 3.0) == 0
+    (text,) = plausibility.tunnel_warning("L5", 1, 0, 0)
+    assert "1 tunnel more than its segment (genus 1 against 0), through bone the segment " \
+        "leaves out" in text and "hole" not in text
+
+
 # ---------------------------------------------------------------------------- pairs that cross
 
 def _pair_scene(centres):

@@ -118,6 +118,9 @@ EXCURSION_WARN_MM = 0.5
 VOLUME_WARN_FRACTION = 0.05
 # The segment's genus is measured after smoothing by this many times its coarseness (sigma).
 SEGMENT_GENUS_SIGMA = 0.5
+# plugged_tunnels: the segment within this many times its coarseness of the surface may plug
+# its holes (a hole in a plate of a few mm, the segment's plate over it).
+PLUG_REACH_COARSENESS = 2.0
 # Excursion allowed beyond the band, in units of the coarseness, plus a constant.
 EXCURSION_COARSENESS = 2.0
 EXCURSION_MM = 2.0
@@ -599,13 +602,48 @@ def smoothed_segment(label: np.ndarray, spacing: float, coarseness: float) -> np
     return field[pad:-pad, pad:-pad, pad:-pad] >= 0.5
 
 
-def tunnel_warning(name: str, surface_genus: int, segment_genus: int) -> list:
+def plugged_tunnels(inside: np.ndarray, segment: np.ndarray, spacing: float,
+                    coarseness: float) -> int:
+    """How many tunnels of a surface its segment plugs: holes of the surface where the segment
+    has bone.
+
+    The genus of the surface's voxels less that of their union with the segment (at its own
+    resolution, :func:`smoothed_segment`) within ``PLUG_REACH_COARSENESS`` x ``coarseness``
+    of them: a hole in a plate is covered by the segment's plate around it; farther parts of
+    the segment could only bridge new tunnels. 0 when the surface has its extra tunnels
+    through bone the segment leaves out (a vertebral arch the segment leaves open on thick
+    slices closes a ring the segment does not have).
+
+    Parameters
+    ----------
+    inside, segment : (z, y, x) bool arrays
+        The surface's voxels and the bone's segment on one box of the working grid.
+    spacing, coarseness : float
+        The grid's step and the segment's coarseness (mm).
+    """
+    from .poisson import raw_genus
+
+    near = smoothed_segment(segment, spacing, coarseness) & \
+        (distance_outside(inside) * spacing <= PLUG_REACH_COARSENESS * coarseness)
+    alone = raw_genus(np.pad(inside, 1).astype(np.float32))
+    joined = raw_genus(np.pad(inside | near, 1).astype(np.float32))
+    return max(0, alone - joined)
+
+
+def tunnel_warning(name: str, surface_genus: int, segment_genus: int,
+                   plugged: int | None = None) -> list:
     """A warning when the surface has more tunnels than its segment: bone too thin for the
-    thresholds (an iliac wing or a sinus wall on thick slices) came out as a hole."""
+    thresholds (an iliac wing or a sinus wall on thick slices) came out as a hole, or, when
+    the segment plugs none of them (``plugged`` = 0, :func:`plugged_tunnels`), the surface
+    closes a ring through bone the segment leaves out."""
     if surface_genus <= segment_genus:
         return []
     extra = surface_genus - segment_genus
-    return [f"{name}: the surface has {extra} tunnel{'s' if extra > 1 else ''} more than its "
-            f"segment (genus {surface_genus} against {segment_genus}): where the bone is thinner "
-            "than the CT resolves it may have come out as a hole. Check the surface; a lower HT "
-            "or a finer CT closes it"]
+    head = (f"{name}: the surface has {extra} tunnel{'s' if extra > 1 else ''} more than its "
+            f"segment (genus {surface_genus} against {segment_genus})")
+    if plugged == 0:
+        return [f"{head}, through bone the segment leaves out: the segment covers none of them, "
+                "the surface closes a ring the segment leaves open (a vertebral arch or the rim "
+                "of a foramen the segment misses). Check the segment there"]
+    return [f"{head}: where the bone is thinner than the CT resolves it may have come out as a "
+            "hole. Check the surface; a lower HT or a finer CT closes it"]
