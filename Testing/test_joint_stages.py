@@ -1875,3 +1875,39 @@ def test_a_crumb_beside_a_joint_that_touches_a_merged_crumb_joins_the_bone_too()
     out = ownership._merged_pieces(faces, ws, labels, 2, [3, 5], 1.0, reach_mm=8.0,
                                    boxes=boxes, sided=set())
     assert out == []
+
+
+def test_a_ct_edge_the_surface_stops_short_of_is_warned_where_it_is():
+    # A ball of radius 10 mm (the finished surface) on an oblique grid; its bone's CT edge
+    # (deformation constraints) on the ball but for a 6 x 6 mm patch on a tip 6 mm out: warned,
+    # with where. The same patch 2.5 mm out (within the edge search's reach), 1 x 1 mm (a
+    # speck), inside the ball, or beyond a cap plane of the image: quiet.
+    from BoneWatertightLib.pipeline import _missed_edge_warning
+    from BoneWatertightLib.stages.prepare import CapPlane, Grid
+
+    v, f = icosphere(5)
+    c = np.array([30.0, 30.0, 30.0])
+    rot = np.linalg.qr(np.array([[1.0, 0.3, 0.2], [-0.2, 1.0, 0.4], [0.1, -0.3, 1.0]]))[0]
+    grid = Grid(origin=np.array([-40.0, 12.0, 7.0]), direction=rot, spacing=0.5,
+                shape_zyx=(120, 120, 120))
+    phys = grid.grid_to_physical(c + 10.0 * v)
+    ij = np.stack(np.meshgrid(np.arange(-3, 3.01, 0.5), np.arange(-3, 3.01, 0.5)), -1).reshape(-1, 2)
+
+    def patch(out_mm, half=3.0):
+        sel = np.abs(ij).max(axis=1) <= half
+        return c + np.column_stack([ij[sel], np.full(sel.sum(), 10.0 + out_mm)])
+
+    on_ball = c + 10.0 * v[::7]
+    (text,) = _missed_edge_warning("tip", grid, np.vstack([on_ball, patch(6.0)]), phys, f, 0.5)
+    far = np.sqrt(3.0 ** 2 + 3.0 ** 2 + 16.0 ** 2) - 10.0  # the patch's corner, 6.55 mm
+    assert f"up to {far:.1f} mm outside the surface" in text
+    at = np.array([float(t) for t in text.split("LPS (")[1].split(")")[0].split(",")])
+    corners = grid.grid_to_physical(c + np.array([[a, b, 16.0] for a in (-3, 3) for b in (-3, 3)]))
+    assert np.linalg.norm(corners - at, axis=1).min() <= 1.0  # said to the millimetre
+    area = float(text.split("over about ")[1].split(" mm^2")[0])
+    assert 30 <= area <= 45  # 13 x 13 points 0.5 mm apart: 36 mm^2 and its cells' rims
+    for quiet in (patch(2.5), patch(6.0, half=0.5), c + np.array([0.0, 0.0, 2.0]) + 0.3 * v):
+        assert _missed_edge_warning("tip", grid, np.vstack([on_ball, quiet]), phys, f, 0.5) == []
+    cap = CapPlane(axis=2, side=1, position=c[2] + 12.0)  # the tip lies beyond the image
+    assert _missed_edge_warning("tip", grid, np.vstack([on_ball, patch(6.0)]), phys, f, 0.5,
+                                [cap]) == []
