@@ -83,11 +83,11 @@ LEFT_OUT_WARN_MM = _poisson.JOIN_TRIAL_REACH_MM
 # The bone's own CT edge (a deformation constraint) farther than this outside the finished
 # surface, over a patch at least this wide, is warned (_missed_edge_warning): beyond the reach
 # of the edge refinement's search (search_radius + search_offset, 2.25 mm at the defaults),
-# so the surface stops short of bone the thresholds hold. Measured on the constraints of 24
-# finished bones that follow their truth or reference (femur phantom, real L1-L5, real pelvis
-# inside its cap planes, 3 mm and 0.7 x 2.5 mm pelvis and lumbar phantoms): at most 3.0 mm out
-# on a patch of 1-2 mm^2; a faint sacral tip and an iliac crest cut 8.6 / 5.7 mm short:
-# 4.8 / 3.9 mm out over 39 / 9 mm^2.
+# so the surface stops short of bone the thresholds hold. Measured on the constraints of 19
+# finished bones that follow their truth or reference (femur phantom, real L1-L5, 3 mm and
+# 0.7 x 2.5 mm pelvis and lumbar phantoms): at most 3.0 mm out, on a patch of 1-2 mm^2; a
+# faint sacral tip and an iliac crest cut 8.6 / 5.7 mm short: 4.8 / 3.9 mm out over 39 / 9
+# mm^2.
 MISSED_EDGE_WARN_MM = 3.0
 # M0 is cut back out of what is neither bone nor segment: farther than CARVE_SEGMENT_COARSENESS
 # x coarseness + d from the (trusted) segment and farther than CARVE_BONE_MM + d from the bone
