@@ -900,18 +900,19 @@ def _missed_edge_warning(name: str, grid, constraints: np.ndarray, phys: np.ndar
     keep = np.ones(len(constraints), bool)
     for p in planes:
         keep &= (constraints[:, p.axis] - p.position) * p.side <= 0
-    points = grid.grid_to_physical(constraints[keep])
+    constraints = constraints[keep]
+    points = grid.grid_to_physical(constraints)
     gap, near = cKDTree(phys).query(points, workers=-1)
-    far = gap > MISSED_EDGE_WARN_MM
-    if not far.any():
+    far = np.flatnonzero(gap > MISSED_EDGE_WARN_MM)
+    if not len(far):
         return []
     normals = _operators.vertex_normals(phys, faces)
     # Outside: on the outer side of the nearest vertex (a point that far from the surface
     # lies well off its tangent plane); the farthest point is checked exactly below.
-    out = np.einsum("ij,ij->i", points[far] - phys[near[far]], normals[near[far]]) > 0
-    points, gap = points[far][out], gap[far][out]
-    if not len(points):
+    far = far[np.einsum("ij,ij->i", points[far] - phys[near[far]], normals[near[far]]) > 0]
+    if not len(far):
         return []
+    constraints, points, gap = constraints[far], points[far], gap[far]
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -924,15 +925,15 @@ def _missed_edge_warning(name: str, grid, constraints: np.ndarray, phys: np.ndar
         sel = np.flatnonzero(patch == c)
         area = len(np.unique(np.floor(points[sel] / d).astype(np.int64), axis=0)) * d * d
         top = sel[np.argmax(gap[sel])]
-        if area >= MISSED_EDGE_WARN_MM ** 2 and (best is None or gap[top] > best[0]):
-            best = (float(gap[top]), area, points[top])
-    if best is None or _inside(phys, faces, best[2]):
+        if area >= MISSED_EDGE_WARN_MM ** 2 and (best is None or gap[top] > gap[best[1]]):
+            best = (area, top)
+    if best is None or _inside(phys, faces, points[best[1]]):
         return []
-    at = grid.physical_to_grid(best[2][None, :])[0]
-    return [f"{name}: the CT shows this bone's edge (thresholded) up to {best[0]:.1f} mm outside "
-            f"the surface over about {best[1]:.0f} mm^2 near {_lps_text(grid, at)}: a faint tip, "
-            "crest or plate that the surface stops short of. Check the surface against the CT "
-            "there; a segment that covers it, or a finer CT, helps"]
+    area, top = best
+    return [f"{name}: the CT shows this bone's edge (thresholded) up to {gap[top]:.1f} mm outside "
+            f"the surface over about {area:.0f} mm^2 near {_lps_text(grid, constraints[top])}: a "
+            "faint tip, crest or plate that the surface stops short of. Check the surface against "
+            "the CT there; a segment that covers it, or a finer CT, helps"]
 
 
 def _plate_holes(ws: Workspace, bone: BoneWork, m0: Surface) -> dict:
@@ -1666,11 +1667,12 @@ def _plugged_tunnels(ws: Workspace, k: int, verts, faces, planes) -> int:
     d, lab = ws.d, ws.labels
     pad = int(np.ceil(_plaus.PLUG_REACH_COARSENESS * ws.prep.coarseness / d)) + 2
     seg = lab == k
-    around = np.zeros(lab.shape, bool)
-    lo = np.clip(np.floor(verts.min(axis=0) / d).astype(int), 0, np.array(lab.shape[::-1]) - 1)
-    hi = np.clip(np.ceil(verts.max(axis=0) / d).astype(int), 0, np.array(lab.shape[::-1]) - 1)
-    around[lo[2]:hi[2] + 1, lo[1]:hi[1] + 1, lo[0]:hi[0] + 1] = True
-    box = _threshold.bbox_slices(seg | around, pad)
+    # The segment's box and the surface's (z, y, x voxels), together, grown by the pad.
+    own_box = _threshold.bbox_slices(seg, 0)
+    lo = np.minimum([s.start for s in own_box], np.floor(verts.min(axis=0) / d).astype(int)[::-1])
+    hi = np.maximum([s.stop for s in own_box], np.ceil(verts.max(axis=0) / d).astype(int)[::-1] + 1)
+    box = tuple(slice(max(0, int(a) - pad), min(n, int(b) + pad))
+                for a, b, n in zip(lo, hi, lab.shape))
     corner = np.array([s.start for s in box][::-1], dtype=np.float64) * d
     inside = _contacts.voxelize(verts - corner, faces, tuple(s.stop - s.start for s in box), d)
     segment = seg[box] & _plaus.image_mask(box, planes, d)
