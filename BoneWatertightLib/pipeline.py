@@ -1807,8 +1807,8 @@ def pair_stage(ws: Workspace, results: list, keep_going: bool = False,
                     "a finer resample spacing")
         seen = p.joint_valley_seen_fraction
         if seen is not None and seen < JOINT_WARN_SEEN and p.joint_contact_mm2 > JOINT_WARN_MIN_MM2:
-            warn(p, f"{p.a} | {p.b}: the CT shows a joint space on only {100 * seen:.0f} % of "
-                    f"their {p.joint_contact_mm2:.0f} mm^2 contact; "
+            warn(p, f"{p.a} | {p.b}: the CT shows a joint space on only "
+                    f"{_plaus.percent_text(seen)} of their {p.joint_contact_mm2:.0f} mm^2 contact; "
                     f"{_hidden_part_text(own, a, b)} (a narrow joint on thick "
                     "slices, or no joint space at all): check both surfaces at the joint")
     # The same for a bone and a neighbour label that is not reconstructed in this run.
@@ -1819,7 +1819,8 @@ def pair_stage(ws: Workspace, results: list, keep_going: bool = False,
                     and seen < JOINT_WARN_SEEN and cc["contact_area_mm2"] > JOINT_WARN_MIN_MM2):
                 by_k[k].report.warnings.append(
                     f"{ws.name_of(k)} | {ws.name_of(other)} (neighbour): the CT shows a joint "
-                    f"space on only {100 * seen:.0f} % of their {cc['contact_area_mm2']:.0f} "
+                    f"space on only {_plaus.percent_text(seen)} of their "
+                    f"{cc['contact_area_mm2']:.0f} "
                     f"mm^2 contact; {_hidden_part_text(own, k, other)}: check the surface at the "
                     "joint")
     bad = [p for p in pairs if not p.ok]
@@ -1898,9 +1899,12 @@ def _hidden_part_text(own, a: int, b: int) -> str:
     """How the boundary of bones a, b was decided where the CT shows no joint space."""
     for f in own.info.get("joint_fits", []):
         if {f["a"], f["b"]} == {a, b} and f.get("used"):
+            # (its points: the joint space the CT shows between the two bones' basins, which
+            # may lie beside the final contact - a contact seen on under 1 % can carry a fit)
             return (f"elsewhere the boundary between them follows a {f['model']} fitted to the "
-                    f"seen joint space (RMS {f['rms_mm']:.2f} mm) as far as it is carried, and "
-                    "the segments' labels beyond")
+                    f"{f['points']} voxels of joint space the CT shows between them (RMS "
+                    f"{f['rms_mm']:.2f} mm) as far as it is carried, and the segments' labels "
+                    "beyond")
     return "elsewhere the boundary between them follows the segments' labels"
 
 

@@ -1200,6 +1200,32 @@ def test_contact_with_unlabelled_bone_without_a_joint_space_fails_or_warns():
     assert not p.problems and not p.warnings
     p = gated(0.0, 1.0)
     assert not p.problems and not p.warnings
+    # a few voxels of joint space on a large contact are "under 1 %", not "0 %"
+    p = gated(940.0, 0.0004)
+    assert "on only under 1 % of their 940 mm^2" in p.warnings[0]
+
+
+def test_a_seen_fraction_rounds_to_zero_only_when_nothing_was_seen():
+    """A contact seen on 0.04 % of its area can still carry a joint fit (its points may lie
+    beside the final contact): the warning must not say 0 % beside "fitted to the joint space
+    the CT shows"; the fit's wording names its points."""
+    assert plausibility.percent_text(0.0) == "0 %"
+    assert plausibility.percent_text(0.0004) == "under 1 %"
+    assert plausibility.percent_text(0.005) == "under 1 %"
+    assert plausibility.percent_text(0.01) == "1 %"
+    assert plausibility.percent_text(0.136) == "14 %"
+    from types import SimpleNamespace
+
+    from BoneWatertightLib.pipeline import _hidden_part_text
+
+    own = SimpleNamespace(info={"joint_fits": [
+        {"a": 1, "b": 3, "model": "sphere", "rms_mm": 0.549, "points": 190, "used": True},
+        {"a": 1, "b": 2, "model": None, "rms_mm": None, "points": 92, "used": False}]})
+    text = _hidden_part_text(own, 3, 1)
+    assert "a sphere fitted to the 190 voxels of joint space the CT shows" in text
+    assert "RMS 0.55 mm" in text
+    assert _hidden_part_text(own, 1, 2) == \
+        "elsewhere the boundary between them follows the segments' labels"
 
 
 def _gate_3mm(name, **measures):

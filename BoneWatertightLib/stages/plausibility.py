@@ -374,6 +374,14 @@ def measure(inside: np.ndarray, vertices: np.ndarray, label: np.ndarray, neighbo
     return p
 
 
+def percent_text(fraction: float) -> str:
+    """A fraction as a whole percentage for a warning; "under 1 %" for a positive fraction
+    below 1 % (it would round to 0: a contact seen on a few voxels is not seen nowhere)."""
+    if 0.0 < fraction < 0.01:
+        return "under 1 %"
+    return f"{100 * fraction:.0f} %"
+
+
 def reach_bound_mm(coarseness: float) -> float:
     """How far a segment this coarse (mm) may lie outside a surface that follows its bone
     before :func:`gate` warns (mm): the farthest it misplaces the bone's border."""
@@ -514,7 +522,7 @@ def gate(p: Plausibility, *, coarseness: float, band_mm: float, name: str,
             and p.unlabelled_contact_seen < JOINT_WARN_SEEN):
         p.warnings.append(
             f"{name} | unlabelled bone: the CT shows a joint space on only "
-            f"{100 * p.unlabelled_contact_seen:.0f} % of their {p.unlabelled_contact_mm2:.0f} "
+            f"{percent_text(p.unlabelled_contact_seen)} of their {p.unlabelled_contact_mm2:.0f} "
             "mm^2 contact; elsewhere the boundary is a guess: if that bone is a neighbour, "
             "label it; if it continues this bone (a part the segment missed, such as a thin "
             "blade beyond a coarse label), extend the segment over it; then check the surface "
