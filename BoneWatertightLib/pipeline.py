@@ -1820,9 +1820,8 @@ def pair_stage(ws: Workspace, results: list, keep_going: bool = False,
                 by_k[k].report.warnings.append(
                     f"{ws.name_of(k)} | {ws.name_of(other)} (neighbour): the CT shows a joint "
                     f"space on only {_plaus.percent_text(seen)} of their "
-                    f"{cc['contact_area_mm2']:.0f} "
-                    f"mm^2 contact; {_hidden_part_text(own, k, other)}: check the surface at the "
-                    "joint")
+                    f"{cc['contact_area_mm2']:.0f} mm^2 contact; "
+                    f"{_hidden_part_text(own, k, other)}: check the surface at the joint")
     bad = [p for p in pairs if not p.ok]
     if not bad:
         return pairs
