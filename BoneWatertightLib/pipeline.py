@@ -1515,8 +1515,11 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
     dist, _ = cKDTree(grid.grid_to_physical(constraints)).query(phys, workers=-1) \
         if len(constraints) else (np.zeros(len(phys)), None)
     warnings += _missed_edge_warning(name, grid, constraints, phys, faces, ws.d, planes)
+    for patch in summary.get("label_only_patches", ()):
+        patch["lps_mm"] = [round(float(v), 1) for v in phys[patch["vertex"]]]
     warnings += _evidence.evidence_warnings(name, summary,
-                                            _plate_min_thickness(run.params, ws.d))
+                                            _plate_min_thickness(run.params, ws.d),
+                                            where=lambda v: _lps_text(grid, verts[v]))
     surface = Surface(phys, faces, "LPS", {"DistanceToConstraints": dist, "Evidence": evidence,
                                            "Confidence": confidence},
                       {"Cap": flags} if planes else {})

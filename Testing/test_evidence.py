@@ -115,3 +115,35 @@ def test_threshold_reach_is_the_border_the_ct_shows_that_ht_reaches():
     _, _, summary = E.vertex_evidence(corners, faces, flags, ct_smooth=None, spacing=d, ht=150.0,
                                       soft=40.0, min_contrast=50.0)
     assert summary["threshold_reach"] is None
+
+
+def test_the_label_only_warning_says_where_its_largest_patches_are():
+    """Two caps of a sphere (radius 10 mm) stand on the segment alone: the warning gives the
+    area and place of each (largest first), at a vertex of the patch near its middle; a patch
+    under WARN_AREA_MM2 is not listed, and without ``where`` the warning is as before."""
+    from test_checks import icosphere
+
+    v, f = icosphere(level=4, radius=10.0)
+    area = E.vertex_areas(v, f)
+    big = v[:, 0] > 5.0            # cap of height 5 mm: 2 pi r h = 314 mm^2
+    small = v[:, 0] < -8.0         # height 2 mm: 126 mm^2
+    tiny = v[:, 2] > 9.7           # height 0.3 mm: 19 mm^2, not listed
+    mask = big | small | tiny
+    patches = E.label_only_patches(f, mask, area, v)
+    assert len(patches) == 3
+    assert patches[0]["area_mm2"] > patches[1]["area_mm2"] > patches[2]["area_mm2"]
+    assert abs(patches[0]["area_mm2"] - 2 * np.pi * 10 * 5) < 20
+    assert abs(patches[1]["area_mm2"] - 2 * np.pi * 10 * 2) < 15
+    # each patch's vertex lies in it, near its middle (on the x axis)
+    assert big[patches[0]["vertex"]] and v[patches[0]["vertex"], 0] > 9.5
+    assert small[patches[1]["vertex"]] and v[patches[1]["vertex"], 0] < -9.5
+    assert E.label_only_patches(f, np.zeros(len(v), bool), area, v) == []
+    summary = {"area_mm2": {"label only": float(area[mask].sum())},
+               "fraction": {"label only": float(area[mask].sum() / area.sum())},
+               "label_only_patches": patches}
+    [text] = E.evidence_warnings(
+        "ball", summary, 1.6, where=lambda i: f"LPS ({v[i, 0]:.0f}, {v[i, 1]:.0f}, {v[i, 2]:.0f})")
+    assert text.endswith("(point array Evidence = 3); the largest patches: 316 mm^2 near "
+                         "LPS (10, 0, 0), 126 mm^2 near LPS (-10, 0, 0)")
+    [plain] = E.evidence_warnings("ball", summary, 1.6)
+    assert plain.endswith("(point array Evidence = 3)")

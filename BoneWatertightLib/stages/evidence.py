@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh.operators import sample_field
+from .plausibility import percent_text
 from .refine import contrast_reference, edge_crossings, full_contrast, sample_profiles
 
 EDGE, PLATE, JOINT, LABEL_ONLY, CAP = 0, 1, 2, 3, 4
@@ -36,6 +37,8 @@ EDGE_TOLERANCE_RESOLUTION = 0.5
 JOINT_CONFIDENCE = 0.5
 # Areas (mm^2) from which a label-only or thickened thin-plate part of the surface is warned.
 WARN_AREA_MM2 = 100.0
+# The label-only warning says where its largest patches (at least WARN_AREA_MM2 each) are.
+PATCHES_LISTED = 3
 
 
 def vertex_areas(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -173,8 +176,50 @@ def vertex_evidence(vertices: np.ndarray, faces: np.ndarray, cap_flags: np.ndarr
                                    "p90": float(np.percentile(offsets, 90))}
                                   if offsets.size else None),
                "classes": {i: name for i, name in enumerate(CLASSES)},
-               "threshold_reach": _threshold_reach(area, shows, reaches, ~near & ~on_cap, ht)}
+               "threshold_reach": _threshold_reach(area, shows, reaches, ~near & ~on_cap, ht),
+               "label_only_patches": label_only_patches(faces, evidence == LABEL_ONLY, area,
+                                                        vertices)}
     return evidence, confidence, summary
+
+
+def label_only_patches(faces: np.ndarray, mask: np.ndarray, area: np.ndarray,
+                       vertices: np.ndarray, top: int = PATCHES_LISTED) -> list:
+    """The largest edge-connected patches of the vertices in ``mask``, largest first: a list
+    of {"area_mm2", "vertex"}, ``vertex`` the patch's vertex nearest its area-weighted centre
+    (a point on the surface, where a user can look).
+
+    Parameters
+    ----------
+    faces : (m, 3) int array
+    mask : (n,) bool array
+    area : (n,) float array
+        Each vertex's share of the surface's area (:func:`vertex_areas`), mm^2.
+    vertices : (n, 3) float array
+    top : int
+        How many patches are listed.
+    """
+    idx = np.flatnonzero(mask)
+    if not len(idx):
+        return []
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges = edges[mask[edges[:, 0]] & mask[edges[:, 1]]]
+    n = len(mask)
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    sums = np.bincount(comp[idx], weights=area[idx])
+    out = []
+    for k in np.argsort(sums)[::-1][:top]:
+        if sums[k] <= 0:
+            break
+        sel = idx[comp[idx] == k]
+        w = area[sel]
+        centre = (vertices[sel] * w[:, None]).sum(axis=0) / w.sum()
+        nearest = sel[np.argmin(np.linalg.norm(vertices[sel] - centre, axis=1))]
+        out.append({"area_mm2": float(sums[k]), "vertex": int(nearest)})
+    return out
 
 
 def _threshold_reach(area, shows, reaches, free, ht) -> dict | None:
@@ -188,9 +233,10 @@ def _threshold_reach(area, shows, reaches, free, ht) -> dict | None:
             "fraction": float(area[reaches & free].sum() / shown) if shown > 0 else 0.0}
 
 
-def evidence_warnings(name: str, summary: dict, min_thickness: float) -> list:
+def evidence_warnings(name: str, summary: dict, min_thickness: float, where=None) -> list:
     """Warnings for the parts of a surface that stand on the segment alone or on a modelled
-    thin plate, with their areas (from WARN_AREA_MM2 on)."""
+    thin plate, with their areas (from WARN_AREA_MM2 on); ``where`` (vertex index -> text,
+    e.g. "LPS (x, y, z)"): the label-only warning also says where its largest patches are."""
     out = []
     thick = summary.get("thickened_plate_mm2", 0.0)
     if thick >= WARN_AREA_MM2:
@@ -200,7 +246,14 @@ def evidence_warnings(name: str, summary: dict, min_thickness: float) -> list:
     label = summary["area_mm2"].get("label only", 0.0)
     if label >= WARN_AREA_MM2:
         frac = summary["fraction"].get("label only", 0.0)
-        out.append(f"{name}: {label:.0f} mm^2 ({100 * frac:.0f} %) of the surface has no CT edge "
-                   "under it (it follows the thresholds or the segment alone): check it there "
-                   "(point array Evidence = 3)")
+        text = (f"{name}: {label:.0f} mm^2 ({percent_text(frac)}) of the surface has no CT edge "
+                "under it (it follows the thresholds or the segment alone): check it there "
+                "(point array Evidence = 3)")
+        big = [p for p in summary.get("label_only_patches", ())
+               if p["area_mm2"] >= WARN_AREA_MM2]
+        if where is not None and big:
+            text += ("; the largest patch" + ("es" if len(big) > 1 else "") + ": "
+                     + ", ".join(f"{p['area_mm2']:.0f} mm^2 near {where(p['vertex'])}"
+                                 for p in big))
+        out.append(text)
     return out
