@@ -855,7 +855,11 @@ def _trusted_segment(ws: Workspace, k: int, box: tuple) -> np.ndarray:
 
 def _lps_text(grid, point_grid_mm: np.ndarray) -> str:
     """'LPS (x, y, z)' of a point of the working grid (x, y, z mm), for a message."""
-    p = grid.grid_to_physical(np.asarray(point_grid_mm, np.float64)[None, :])[0]
+    return _lps_of(grid.grid_to_physical(np.asarray(point_grid_mm, np.float64)[None, :])[0])
+
+
+def _lps_of(p: np.ndarray) -> str:
+    """'LPS (x, y, z)' of a physical (LPS mm) point, for a message."""
     return f"LPS ({p[0]:.0f}, {p[1]:.0f}, {p[2]:.0f})"
 
 
@@ -1519,7 +1523,7 @@ def finish_bone(run: _Run, ws: Workspace, bone: BoneWork,
         patch["lps_mm"] = [round(float(v), 1) for v in phys[patch["vertex"]]]
     warnings += _evidence.evidence_warnings(name, summary,
                                             _plate_min_thickness(run.params, ws.d),
-                                            where=lambda v: _lps_text(grid, verts[v]))
+                                            where=lambda v: _lps_of(phys[v]))
     surface = Surface(phys, faces, "LPS", {"DistanceToConstraints": dist, "Evidence": evidence,
                                            "Confidence": confidence},
                       {"Cap": flags} if planes else {})
@@ -1969,14 +1973,7 @@ def _crossing_pairs(surfaces: dict) -> list:
 def _pieces(vertices, faces) -> tuple:
     """(piece index of each face (m,), enclosed volume mm^3 of each piece): the connected
     pieces of a surface."""
-    import scipy.sparse as sps
-    from scipy.sparse.csgraph import connected_components
-
-    n = len(vertices)
-    rows = np.concatenate([faces[:, 0], faces[:, 1]])
-    cols = np.concatenate([faces[:, 1], faces[:, 2]])
-    graph = sps.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
-    _, comp = connected_components(graph, directed=False)
+    comp = _operators.vertex_components(len(vertices), faces)
     face_comp = np.unique(comp[faces[:, 0]], return_inverse=True)[1].ravel()
     volumes = np.array([abs(enclosed_volume(vertices, faces[face_comp == c]))
                         for c in range(int(face_comp.max()) + 1)] if len(faces) else [])

@@ -92,6 +92,19 @@ def laplacian(n: int, faces: np.ndarray) -> sp.csr_matrix:
     return (sp.identity(n, format="csr") - dinv @ adj).tocsr()
 
 
+def vertex_components(n: int, faces: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
+    """Connected-component index of each of the ``n`` vertices, joined along the faces' edges
+    ((n,) int); with ``keep`` ((n,) bool), only along edges whose two ends are kept (a vertex
+    not kept is a component of its own)."""
+    from scipy.sparse.csgraph import connected_components
+
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    if keep is not None:
+        edges = edges[keep[edges[:, 0]] & keep[edges[:, 1]]]
+    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
 def ring_mean(avg: sp.csr_matrix, values: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Weighted mean of ``values`` over each vertex's 1-ring; 0 where no neighbour has weight.
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..mesh.operators import sample_field
+from ..mesh.operators import sample_field, vertex_components
 from .plausibility import percent_text
 from .refine import contrast_reference, edge_crossings, full_contrast, sample_profiles
 
@@ -201,14 +201,7 @@ def label_only_patches(faces: np.ndarray, mask: np.ndarray, area: np.ndarray,
     idx = np.flatnonzero(mask)
     if not len(idx):
         return []
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    edges = edges[mask[edges[:, 0]] & mask[edges[:, 1]]]
-    n = len(mask)
-    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    _, comp = connected_components(graph, directed=False)
+    comp = vertex_components(len(mask), faces, mask)
     sums = np.bincount(comp[idx], weights=area[idx])
     out = []
     for k in np.argsort(sums)[::-1][:top]:
